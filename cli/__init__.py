@@ -1,0 +1,2 @@
+"""The ``dbh`` command line. Imports ``monodbh.toolkit``/``calib``/``models`` lazily, per command."""
+__all__: list[str] = []
