@@ -1,0 +1,12 @@
+"""Torch ``nn.Module``s of the three networks (training-only; never imported by the runtime).
+
+Use the registry: ``build(kind, size)`` returns a fresh model with ``.spec`` (its
+:class:`~monodbh.models.modeling.registry.ModelSpec`); ``get_spec(kind, size)`` the I/O contract.
+Kinds: ``"segmenter"`` (``segmenter.py``), ``"cden"`` (``cden.py``), ``"treenet"`` (``treenet.py``).
+"""
+from monodbh.models.modeling.registry import (BUILDERS, KIND_MODULES, SIZES, SPECS, ModelSpec,
+                                              Preprocess, TensorSpec, build, get_spec, kinds,
+                                              register)
+
+__all__ = ["BUILDERS", "KIND_MODULES", "SIZES", "SPECS", "ModelSpec", "Preprocess", "TensorSpec",
+           "build", "get_spec", "kinds", "register"]

@@ -1,0 +1,8 @@
+"""Training (torch): shared harness in ``common`` and one module per kind.
+
+``common``: run folders, resumable loop, data sources, augmentation, export hooks.
+``segmenter``: :func:`~monodbh.models.training.segmenter.train_segmenter`.
+``depth`` / ``trees``: CDEN and tree-silhouette networks.
+Submodules are imported explicitly (this package imports nothing heavy at import time).
+"""
+__all__: list[str] = []
