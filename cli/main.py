@@ -12,5 +12,11 @@ def version() -> None:
     typer.echo(_v("monodbh"))
 
 
+# --- training-data commands (lazy: the generator is a training-only extra) ---------------------
+from .synth_cmd import synth as _synth  # noqa: E402  (module imports nothing heavy)
+
+app.command("synth")(_synth)
+
+
 def main() -> None:
     app()

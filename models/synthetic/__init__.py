@@ -1,0 +1,101 @@
+"""Procedural synthetic forest scenes with exact ground truth (training and evaluation data).
+
+Training-only: needs the ``synth`` extra (trimesh/embreex). Never imported by the measuring
+path. See ``docs/ARCHITECTURE.md`` for the sample format.
+
+Examples
+--------
+>>> from monodbh.models.synthetic import generate_sample
+>>> s = generate_sample(seed=0, index=3, size=(320, 240))   # doctest: +SKIP
+>>> s["rgb"].shape, s["depth"].dtype, s["meta"]["trees"][0]["dbh_m"]  # doctest: +SKIP
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from .scene import BREAST_HEIGHT_M, Scene, sample_scene
+
+__all__ = ["generate_sample", "iter_samples", "sample_seed", "scene_meta", "BREAST_HEIGHT_M"]
+
+
+def sample_seed(seed: int, index: int) -> int:
+    """Independent 63-bit seed of sample ``index`` in the dataset of base ``seed``."""
+    return int(np.random.SeedSequence([int(seed), int(index)]).generate_state(2, np.uint64)[0] >> np.uint64(1))
+
+
+def scene_meta(scene: Scene, out: dict) -> dict:
+    """JSON-serialisable record of a rendered scene (see ``docs/ARCHITECTURE.md``)."""
+    cam = scene.camera
+    inst = out["instance"]
+    counts = np.bincount(inst.ravel(), minlength=len(scene.trees) + 1)
+    trees = []
+    for t in scene.trees:
+        pbh = t.axis_point(BREAST_HEIGHT_M)
+        pc = cam.R_wc.T @ (pbh - cam.t_wc)
+        trees.append(dict(
+            id=t.id, species=t.species, dbh_m=t.dbh_m(), dbh_polygon_m=t.dbh_m(segments=t.segments()),
+            axis_ratio=t.axis_ratio, ellipse_phase_rad=t.ell_phase, r_bh_m=t.r_bh,
+            position_world=t.base.tolist(), axis_world=t.axis.tolist(), e1_world=t.e1.tolist(),
+            e2_world=t.e2.tolist(), height_m=t.height_m, lean_deg=float(np.degrees(np.arccos(t.axis[2]))),
+            bh_point_cam=pc.tolist(), distance_m=float(np.hypot(*(pbh[:2] - cam.t_wc[:2]))),
+            pixels=int(counts[t.id]), lod=t.lod, dead=t.dead,
+            harmonics=t.harmonics.tolist(), flare=t.flare, taper=t.taper,
+            rings=[dict(height_m=r.s_m, is_rope=r.is_rope, tube_diameter_m=2 * r.tube_radius_m,
+                        width_m=r.width_m, rgb=list(r.rgb), knot=r.knot) for r in t.rings],
+        ))
+    rope = None
+    if scene.roped_tree:
+        t = scene.trees[scene.roped_tree - 1]
+        r = [x for x in t.rings if x.is_rope][0]
+        rope = dict(tree=t.id, height_m=r.s_m, tube_diameter_m=2 * r.tube_radius_m,
+                    center_world=t.axis_point(r.s_m).tolist(), rgb=list(r.rgb),
+                    pixels=int((out["rope"] & (inst == t.id)).sum()))
+    L = scene.light
+    return dict(
+        seed=scene.seed, width=cam.width, height=cam.height, K=cam.K.tolist(), dist=cam.dist.tolist(),
+        cam_height_m=cam.height_m, pitch_deg=cam.pitch_deg, roll_deg=cam.roll_deg, yaw_deg=cam.yaw_deg,
+        R_world_from_cam=cam.R_wc.tolist(), t_world_from_cam=cam.t_wc.tolist(),
+        ground_z_under_camera_m=float(cam.t_wc[2] - cam.height_m),
+        roped_tree=scene.roped_tree, rope=rope, trees=trees, distractors=scene.distractors,
+        light=dict(sun_dir=L.sun_dir.tolist(), overcast=L.overcast, fog_m=L.fog_m, exposure=L.exposure),
+        render=out["stats"],
+    )
+
+
+def generate_sample(seed: int, index: int = 0, size: tuple[int, int] = (512, 512), *,
+                    distortion: bool = True, aa: bool = True) -> dict:
+    """Render one sample.
+
+    Parameters
+    ----------
+    seed, index : dataset seed and sample index (the pair fixes the sample exactly).
+    size : (W, H) in pixels.
+    distortion : render through a camera with radial distortion.
+
+    Returns
+    -------
+    dict with ``rgb`` (H, W, 3) uint8, ``jpeg`` bytes, ``depth``, ``semantic``, ``instance``,
+    ``rope``, ``z1``, ``z2`` (H, W) and ``meta`` (JSON record).
+    """
+    from .render import render_scene
+    W, H = int(size[0]), int(size[1])
+    if W < 16 or H < 16:
+        raise ValueError(f"image size {W}x{H} is too small (min 16x16)")
+    s = sample_seed(seed, index)
+    rng = np.random.default_rng(s)
+    scene = sample_scene(rng, W, H, distortion=distortion, seed=s)
+    out = render_scene(scene, rng)
+    out["meta"] = scene_meta(scene, out)
+    out["meta"]["dataset_seed"] = int(seed)
+    out["meta"]["index"] = int(index)
+    out["scene"] = scene
+    return out
+
+
+def iter_samples(seed: int, count: int | None = None, size: tuple[int, int] = (512, 512), *,
+                 start: int = 0, distortion: bool = True, **kw):
+    """Yield ``count`` samples (forever if ``None``) of dataset ``seed`` from index ``start``."""
+    i = start
+    while count is None or i < start + count:
+        yield generate_sample(seed, i, size, distortion=distortion, **kw)
+        i += 1
