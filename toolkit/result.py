@@ -1,0 +1,75 @@
+"""Result records of the measuring pipeline (plain data; no heavy imports)."""
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+import numpy as np
+
+__all__ = ["MeasureResult", "PointCloud", "RESULT_FIELDS"]
+
+#: Columns of the CSV / keys guaranteed in every JSON line, in order.
+RESULT_FIELDS = ("photo", "dbh_cm", "dbh_sigma_cm", "distance_m", "scale_source", "flags", "error",
+                 "timings_ms", "estimates_cm", "rope_xy", "tree_id")
+
+
+@dataclass
+class PointCloud:
+    """Coloured points in metres, camera frame (x right, y down, z forward) unless stated.
+
+    Attributes
+    ----------
+    xyz : (N, 3) float32 metres.
+    rgb : (N, 3) uint8.
+    tree_id : (N,) int32, 0 = not a tree (ground, sky-free background), k = tree instance k;
+        the measured tree's refined cloud uses its own id.
+    """
+    xyz: np.ndarray
+    rgb: np.ndarray
+    tree_id: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.xyz)
+
+    @staticmethod
+    def concat(clouds: list["PointCloud"]) -> "PointCloud":
+        clouds = [c for c in clouds if c is not None and len(c)]
+        if not clouds:
+            return PointCloud(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint8), np.zeros(0, np.int32))
+        return PointCloud(np.concatenate([c.xyz for c in clouds]).astype(np.float32),
+                          np.concatenate([c.rgb for c in clouds]).astype(np.uint8),
+                          np.concatenate([c.tree_id for c in clouds]).astype(np.int32))
+
+
+@dataclass
+class MeasureResult:
+    """One photo's measurement.
+
+    ``dbh_cm`` is None exactly when ``error`` is set. ``flags`` are short machine-readable
+    strings (e.g. ``short_arc``, ``estimators_disagree``, ``scale_from_network``).
+    ``debug`` holds arrays for overlays and clouds; it is not serialised.
+    """
+    photo: str
+    dbh_cm: float | None = None
+    dbh_sigma_cm: float | None = None
+    distance_m: float | None = None
+    scale_source: str | None = None
+    flags: list[str] = field(default_factory=list)
+    error: str | None = None
+    timings_ms: dict[str, float] = field(default_factory=dict)
+    estimates_cm: dict[str, float] = field(default_factory=dict)
+    rope_xy: list[float] | None = None
+    tree_id: int | None = None
+    debug: dict[str, Any] = field(default_factory=dict, repr=False)
+
+    def to_json_dict(self) -> dict:
+        """JSON-serialisable dict with exactly :data:`RESULT_FIELDS` (``debug`` dropped)."""
+        d = asdict(self)
+        d.pop("debug", None)
+        out = {k: d[k] for k in RESULT_FIELDS}
+        for k in ("dbh_cm", "dbh_sigma_cm", "distance_m"):
+            if out[k] is not None:
+                out[k] = round(float(out[k]), 3 if k == "distance_m" else 2)
+        out["timings_ms"] = {k: round(float(v), 1) for k, v in out["timings_ms"].items()}
+        out["estimates_cm"] = {k: round(float(v), 2) for k, v in out["estimates_cm"].items()}
+        return out
