@@ -107,6 +107,7 @@ def export_run(run_dir: str | os.PathLike, ship: bool = False, n_calib: int = 32
                tolerance: float = 0.03, *, n_eval: int | None = None,
                recipes: Sequence[QuantRecipe] | None = None, n_runs: int = 20,
                threads: int = 2, models_dir: str | os.PathLike | None = None,
+               data: Any = None, val_data: Any = None,
                verbose: bool = True) -> dict[str, Any]:
     """Export a training run: fp32 ONNX (checked against torch), int8 search, report, ship.
 
@@ -127,6 +128,9 @@ def export_run(run_dir: str | os.PathLike, ship: bool = False, n_calib: int = 32
         Default :data:`~monodbh.models.export.quantize.DEFAULT_RECIPES`.
     models_dir : path, optional
         Ship destination (default: the installed ``monodbh/models`` folder).
+    data, val_data : optional
+        Override the calibration / evaluation data (anything ``training.common.make_source``
+        accepts); default: rebuilt from the run's config.json, else the kind's default.
 
     Returns
     -------
@@ -151,8 +155,11 @@ def export_run(run_dir: str | os.PathLike, ship: bool = False, n_calib: int = 32
     int8_path = out / f"{kind}_int8.onnx"
 
     check = export_onnx(model, spec, fp32_path, check=True)
-    train_src = _source_or_none(config.get("data"))
-    val_src = _source_or_none(config.get("val_data"))
+    from monodbh.models.training.common import make_source
+
+    train_src = make_source(data) if data is not None else _source_or_none(config.get("data"))
+    val_src = (make_source(val_data) if val_data is not None
+               else _source_or_none(config.get("val_data")))
     calib = calibration_inputs(kind, n_calib, seed + 101, spec, train_src)
     n_eval = n_eval or n_calib
     eval_feeds = calibration_inputs(kind, n_eval, seed + 202, spec, val_src)

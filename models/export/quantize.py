@@ -252,15 +252,21 @@ def benchmark(fp32_path: str | os.PathLike, candidates: dict[str, str | os.PathL
                    "size_mb": paths[n].stat().st_size / 2**20,
                    "rel_l2": max(per_out.values()) if per_out else 0.0,
                    "rel_l2_per_output": per_out}
-    # latency: interleaved, same feeds
+    # latency: models alternate in blocks (rounds), same feeds; blocks rather than single runs so
+    # one session's spinning worker threads do not slow the next session's run
     times: dict[str, list[float]] = {n: [] for n in names}
-    for i in range(warmup + n_runs):
-        f = feeds[i % len(feeds)]
+    rounds = max(1, min(4, n_runs))
+    per_round = [n_runs // rounds + (1 if r < n_runs % rounds else 0) for r in range(rounds)]
+    k = 0
+    for r in range(rounds):
         for n in names:
-            t0 = time.perf_counter()
-            sessions[n].run(None, f)
-            if i >= warmup:
-                times[n].append((time.perf_counter() - t0) * 1e3)
+            for i in range(warmup + per_round[r]):
+                f = feeds[(k + i) % len(feeds)]
+                t0 = time.perf_counter()
+                sessions[n].run(None, f)
+                if i >= warmup:
+                    times[n].append((time.perf_counter() - t0) * 1e3)
+        k += per_round[r]
     for n in names:
         rows[n]["latency_ms"] = float(np.median(times[n]))
         rows[n]["latency_p90_ms"] = float(np.percentile(times[n], 90))

@@ -216,7 +216,8 @@ def train_loop(run_dir: str | os.PathLike, *, config: dict[str, Any], model: tor
                validate_fn: Callable[[], dict[str, float]] | None = None,
                resume: bool = False, scheduler: Any = None,
                extra: dict[str, Any] | None = None, log_every: int = 10, val_every: int = 500,
-               ckpt_every: int = 100, verbose: bool = True) -> dict[str, Any]:
+               ckpt_every: int = 100, stop_at: int | None = None,
+               verbose: bool = True) -> dict[str, Any]:
     """Generic resumable training loop.
 
     Parameters
@@ -237,7 +238,12 @@ def train_loop(run_dir: str | os.PathLike, *, config: dict[str, Any], model: tor
         Validation metrics; run every ``val_every`` steps and at the end.
     resume : bool
         Continue from ``checkpoint.pt`` (weights, optimiser, scheduler, RNG, step); config must
-        match except ``steps`` (which may be raised). Log lines after the checkpoint are dropped.
+        match except ``steps`` (which may be raised; LR schedules that depend on ``steps`` then
+        change from the resume point on). Log lines after the checkpoint are dropped.
+    stop_at : int, optional
+        Stop (with a checkpoint) after this many total steps although ``steps`` is the planned
+        total: a time slice on shared machines; ``resume=True`` later continues exactly as an
+        uninterrupted run to ``steps``.
 
     Returns
     -------
@@ -281,8 +287,8 @@ def train_loop(run_dir: str | os.PathLike, *, config: dict[str, Any], model: tor
         })
 
     last_val: dict[str, float] = {}
-    step = start
-    for step in range(start, steps):
+    end = steps if stop_at is None else max(start, min(steps, int(stop_at)))
+    for step in range(start, end):
         model.train()
         losses = step_fn(step)
         done = step + 1
@@ -301,12 +307,12 @@ def train_loop(run_dir: str | os.PathLike, *, config: dict[str, Any], model: tor
             run.log({"step": done, "kind": "val", **last_val})
             if verbose:
                 print("val", json.dumps(last_val), flush=True)
-        if done % ckpt_every == 0 or done == steps:
+        if done % ckpt_every == 0 or done == steps or done == end:
             save(done)
-    if start >= steps:  # nothing to do (already finished)
+    if start >= end:  # nothing to do (already finished)
         last_val = next((r for r in reversed(run.read_log()) if r.get("kind") == "val"), {})
         last_val = {k: v for k, v in last_val.items() if k not in ("step", "kind")}
-    return {"step": max(start, steps), "val": last_val}
+    return {"step": max(start, end), "val": last_val}
 
 
 # --------------------------------------------------------------------------- deterministic data order
