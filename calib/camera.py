@@ -13,16 +13,19 @@ Camera frame
     ``(k1, k2, p1, p2[, k3[, k4, k5, k6[, s1, s2, s3, s4[, tauX, tauY]]]])``.
 World frame of a :class:`CameraPose`
     Metres, z up, ground plane ``z = 0``. The pose estimated by ``dbh calibrate-pose`` puts the
-    origin on the ground straight below the camera and removes the yaw, so world +y is the
-    viewing direction projected on the ground and +x points to the right:
-    ``t_world_from_camera = (0, 0, height_m)``. A world point is ``X_w = R @ X_c + t``.
+    origin on the ground straight below the camera and removes the yaw, so world +x is the
+    viewing direction projected on the ground, +y points left and z up (as the synthetic
+    generator's ``yaw_deg = 0``): ``t_world_from_camera = (0, 0, height_m)``. A world point is
+    ``X_w = R @ X_c + t``.
 Angles
     ``pitch_deg`` > 0: the camera looks up (optical axis above the horizon); < 0: looks down.
     ``roll_deg`` > 0: the camera is turned clockwise about its optical axis as seen by the
     photographer behind it (its right side dips, the horizon in the photo rises to the right).
+    ``yaw_deg``: heading of the optical axis, 0 along world +x, > 0 toward +y (turning left).
     ``R_world_from_camera = Rz(yaw) @ R0 @ Rx(pitch) @ Rz(roll)`` with ``R0`` the level camera
-    (camera x -> world x, camera y -> world -z, camera z -> world y), rotations right-handed
-    about the current camera axes.
+    looking along +x (camera x -> world -y, camera y -> world -z, camera z -> world +x),
+    rotations right-handed about the current camera axes. This matches
+    ``monodbh.models.synthetic`` (``_rotation(yaw, pitch, roll)``).
 """
 from __future__ import annotations
 
@@ -42,8 +45,9 @@ __all__ = ["Camera", "CameraPose", "CalibrationInfo", "DIST_LENGTHS"]
 #: Numbers of distortion coefficients OpenCV accepts.
 DIST_LENGTHS = (4, 5, 8, 12, 14)
 
-# Level camera: camera x -> world x, camera y (down) -> world -z, camera z (forward) -> world +y.
-_R0 = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
+# Level camera looking along world +x: camera x (right) -> world -y, camera y (down) -> -z,
+# camera z (forward) -> +x. Columns are the camera axes in world coordinates.
+_R0 = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
 # Camera frame of a photo rotated 90 deg clockwise: X' = -Y, Y' = X  (X' = _M90 @ X).
 _M90 = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
 
@@ -136,12 +140,12 @@ class CameraPose:
 
     @property
     def yaw_deg(self) -> float:
-        """Heading of the optical axis about world z, degrees (0: along +y, > 0: toward -x)."""
+        """Heading of the optical axis about world z, degrees (0: along +x, > 0: toward +y)."""
         f = self._R[:, 2]
         if math.hypot(f[0], f[1]) < 1e-9:  # looking straight up/down: use the image "up"
             u = -self._R[:, 1]
-            return math.degrees(math.atan2(-u[0], u[1]))
-        return math.degrees(math.atan2(-f[0], f[1]))
+            return math.degrees(math.atan2(u[1], u[0]))
+        return math.degrees(math.atan2(f[1], f[0]))
 
     def camera_from_world(self) -> tuple[np.ndarray, np.ndarray]:
         """Inverse transform ``(R_cw (3, 3), t_cw (3,))`` with ``X_c = R_cw @ X_w + t_cw``."""

@@ -18,5 +18,13 @@ from .synth_cmd import synth as _synth  # noqa: E402  (module imports nothing he
 app.command("synth")(_synth)
 
 
+# --- calibration commands (issue 2; logic in cli/calibrate_cmd.py, heavy imports lazy) --------
+from .calibrate_cmd import calibrate as _calibrate, calibrate_pose as _calibrate_pose  # noqa: E402
+
+app.command("calibrate")(_calibrate)
+app.command("calibrate-pose")(_calibrate_pose)
+# --- end calibration commands ------------------------------------------------------------------
+
+
 def main() -> None:
     app()
