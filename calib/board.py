@@ -1,6 +1,6 @@
 """Calibration boards (chessboard, ChArUco) and their fast detection on big photos.
 
-Detection runs on a copy downscaled to at most ``max_side`` pixels (then on one twice that
+Detection runs on a copy downscaled to at most ``max_side`` (1000) pixels (then on one twice that
 size if nothing is found), and the corners are refined with ``cv2.cornerSubPix`` on the
 full-resolution image, with a window of about 0.3 times the smallest corner spacing (at most
 61 x 61 pixels) unless a fixed window is asked for. Chessboards use
@@ -246,7 +246,7 @@ def _find_charuco(small: np.ndarray, board: Board):
 
 
 def detect_board(gray: np.ndarray, board: Board, *, detector: str = "auto",
-                 max_side: int = 1600, subpix_win: Optional[int] = None,
+                 max_side: int = 1000, subpix_win: Optional[int] = None,
                  subpix_iters: int = 40, subpix_eps: float = 1e-3) -> Optional[Detection]:
     """Find a calibration board in a gray image.
 

@@ -196,7 +196,7 @@ def _thumb(gray: np.ndarray) -> np.ndarray:
 
 
 def detect_views(images: Sequence[Any], board: Board, *, names: Optional[Sequence[str]] = None,
-                 detector: str = "auto", max_side: int = 1600,
+                 detector: str = "auto", max_side: int = 1000,
                  subpix_win: Optional[int] = None, subpix_iters: int = 40,
                  subpix_eps: float = 1e-3, threads: Optional[int] = None,
                  progress: Optional[Callable[[int, int, str], None]] = None,
@@ -456,7 +456,7 @@ def calibrate_views(views: list[ViewResult], board: Board, image_size: tuple[int
 
 
 def calibrate(images: Sequence[Any], board: Board, *, names: Optional[Sequence[str]] = None,
-              detector: str = "auto", max_side: int = 1600, subpix_win: Optional[int] = None,
+              detector: str = "auto", max_side: int = 1000, subpix_win: Optional[int] = None,
               subpix_iters: int = 40, subpix_eps: float = 1e-3, flags: int = 0,
               non_planar: bool = False, reject_outliers: bool = True,
               outlier_factor: float = 3.0, outlier_min_px: float = 0.5, min_views: int = 3,

@@ -90,7 +90,7 @@ def pose_from_board(rvec: Any, tvec: Any, *, board_thickness_m: float = 0.0) -> 
 
 def estimate_ground_pose(image: Any, camera: Camera, board: Board, *,
                          board_thickness_m: float = 0.0, detector: str = "auto",
-                         max_side: int = 1600, name: Optional[str] = None) -> GroundPoseResult:
+                         max_side: int = 1000, name: Optional[str] = None) -> GroundPoseResult:
     """Estimate camera height, pitch and roll from a photo of a board lying on level ground.
 
     Parameters

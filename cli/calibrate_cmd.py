@@ -143,7 +143,7 @@ def calibrate(
     subpix_win: Optional[int] = typer.Option(None, "--subpix-win", min=0,
                                              help="cornerSubPix half window, px (default 0.3 x "
                                                   "corner spacing); 0 = no refinement."),
-    detect_size: int = typer.Option(1600, "--detect-size", min=64,
+    detect_size: int = typer.Option(1000, "--detect-size", min=64,
                                     help="Detect on a copy this many px on its long side."),
     fix_aspect: bool = typer.Option(False, "--fix-aspect-ratio", help="Force fx = fy."),
     zero_tangent: bool = typer.Option(False, "--zero-tangent", help="No tangential distortion."),

@@ -1,0 +1,16 @@
+"""Shared pytest fixtures (keep minimal: several test modules use these)."""
+import os
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="session")
+def shared_data() -> Path:
+    """Root of the shared data sets: ``$MONODBH_SHARED_DATA``, default ``<repo>/../shared/data``."""
+    root = Path(os.environ.get("MONODBH_SHARED_DATA", REPO.parent / "shared" / "data"))
+    if not root.is_dir():
+        pytest.skip(f"shared data not found at {root} (set MONODBH_SHARED_DATA)")
+    return root
