@@ -46,6 +46,11 @@ def test_tiny_segmenter_shapes_and_spec():
     assert tuple(c.shape) == spec.outputs[0].shape and c.shape[-1] == NO_OBJECT + 1
     assert tuple(k.shape) == spec.outputs[1].shape == (1, 8, 16, 16)
     assert len(preds) == m.cfg.dec_layers + 1
+    x = torch.randn(1, 3, 64, 64)
+    with torch.no_grad():       # inference path (pooled features) == training path (pooled masks)
+        c1, k1 = m(x)
+        c2, k2 = m.forward_all(x)[-1]
+    assert torch.allclose(c1, c2, atol=1e-4) and torch.allclose(k1, k2, atol=1e-4)
     base = get_spec("segmenter", "base")
     assert base.inputs[0].shape == (1, 3, 256, 256) and base.outputs[1].shape[-2:] == (64, 64)
     assert get_spec("segmenter", "base").to_dict() == type(base).from_dict(base.to_dict()).to_dict()
@@ -67,7 +72,7 @@ def test_onnx_matches_torch_tiny(tmp_path):
 
 def test_build_targets_things_and_stuff():
     s = fake_sample(3)
-    t = build_targets(s["semantic"], s["instance"], (16, 16))
+    t = build_targets(s["semantic"], s["instance"], (16, 16), min_thing_area=4)
     n_trees = len(np.unique(s["instance"])) - 1
     assert (t["labels"] == TREE_CLASS).sum() == n_trees
     assert set(t["labels"].tolist()) - {TREE_CLASS} <= {0, 1, 2, 4}
@@ -85,7 +90,7 @@ def test_hungarian_loss_decreases_on_toy_batch():
     crit = SetCriterion()
     opt = torch.optim.AdamW(m.parameters(), lr=2e-3)
     losses = []
-    for _ in range(12):
+    for _ in range(8):
         loss, parts = crit(m.forward_all(imgs), tgts)
         opt.zero_grad()
         loss.backward()
@@ -99,7 +104,7 @@ def test_pq_and_roped_iou_perfect_prediction():
     s = fake_sample(5)
     # a "predictor" that returns GT as logits (one query per GT segment, rest no-object)
     spec = get_spec("segmenter", "tiny")
-    t = build_targets(s["semantic"], s["instance"], (64, 64))
+    t = build_targets(s["semantic"], s["instance"], (64, 64), min_thing_area=1)
     Q = 12
     cls = np.full((1, Q, NO_OBJECT + 1), -10.0, np.float32)
     cls[0, :, NO_OBJECT] = 10.0

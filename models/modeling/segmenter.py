@@ -60,7 +60,8 @@ class SegmenterConfig:
 
 CONFIGS: dict[str, SegmenterConfig] = {
     "tiny": SegmenterConfig(64, (8, 16, 24, 32), (1, 1, 1, 1), 32, 8, 2, 3, 64, 1, 64),
-    "base": SegmenterConfig(256, (32, 64, 128, 192), (1, 2, 2, 2), 128, 24, 4, 6, 512, 2, 256),
+    # 64 queries: synthetic scenes show 40-60 trees of >= 64 px (at 256x256) plus 3-4 stuff masks
+    "base": SegmenterConfig(256, (32, 64, 128, 192), (1, 2, 2, 2), 128, 64, 4, 6, 512, 2, 256),
 }
 
 
@@ -160,6 +161,9 @@ class Backbone(nn.Module):
 class PixelDecoder(nn.Module):
     """FPN + transformer encoder on stride-32 tokens.
 
+    Fusion after each top-down addition: 3x3 conv at stride 16, depthwise 3x3 + pointwise at
+    strides 8 and 4 (a full 3x3 at stride 4 would cost more than the whole backbone).
+
     Returns ``mask_features`` (B, D, S/4, S/4) and memory maps at strides 32, 16, 8 (B, D, h, w).
     """
 
@@ -167,7 +171,11 @@ class PixelDecoder(nn.Module):
                  enc_ffn: int) -> None:
         super().__init__()
         self.lateral = nn.ModuleList(ConvBNAct(c, dim, 1, act=None) for c in channels)
-        self.fuse = nn.ModuleList(ConvBNAct(dim, dim, 3) for _ in channels[:-1])
+        # strides 4 and 8 (most pixels): depthwise-separable fusion; stride 16: full 3x3
+        self.fuse = nn.ModuleList([
+            nn.Sequential(ConvBNAct(dim, dim, 3, groups=dim), ConvBNAct(dim, dim, 1)),
+            nn.Sequential(ConvBNAct(dim, dim, 3, groups=dim), ConvBNAct(dim, dim, 1)),
+            ConvBNAct(dim, dim, 3)])
         self.encoder = nn.ModuleList(EncoderLayer(dim, heads, enc_ffn) for _ in range(enc_layers))
         self.mask_proj = nn.Conv2d(dim, dim, 1)
         self.dim = dim
@@ -210,18 +218,23 @@ class Segmenter(nn.Module):
         self.class_embed = nn.Linear(D, num_classes + 1)
         self.mask_embed = MLP(D, D, D, cfg.mask_mlp_layers)
 
-    def _predict(self, tgt: torch.Tensor, mask_features: torch.Tensor
-                 ) -> tuple[torch.Tensor, torch.Tensor]:
+    def _head(self, tgt: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         out = self.decoder_norm(tgt)
-        cls = self.class_embed(out)
-        emb = self.mask_embed(out)  # (B, Q, D)
-        B, D, H, W = mask_features.shape
-        masks = torch.matmul(emb, mask_features.reshape(B, D, H * W)).reshape(B, -1, H, W)
-        return cls, masks
+        return self.class_embed(out), self.mask_embed(out)  # (B, Q, C+1), (B, Q, D)
+
+    @staticmethod
+    def _masks(emb: torch.Tensor, feats: torch.Tensor) -> torch.Tensor:
+        """Mask logits ``(B, Q, H, W)`` = mask embeddings ``(B, Q, D)`` . features ``(B, D, H, W)``."""
+        B, D, H, W = feats.shape
+        return torch.matmul(emb, feats.reshape(B, D, H * W)).reshape(B, -1, H, W)
 
     @staticmethod
     def _attn_bias(masks: torch.Tensor, stride: int) -> torch.Tensor:
-        """Additive cross-attention bias ``(B, Q, h*w)`` from mask logits ``(B, Q, H, W)``."""
+        """Additive cross-attention bias ``(B, Q, h*w)`` from mask logits ``(B, Q, H, W)``.
+
+        Keys where the average-pooled mask logit is < 0 (sigmoid < 0.5) get :data:`NEG_INF`;
+        a query whose keys would all be masked attends everywhere (Mask2Former's guard).
+        """
         m = masks.detach()
         if stride > 1:
             m = F.avg_pool2d(m, stride, stride)
@@ -230,8 +243,8 @@ class Segmenter(nn.Module):
         full = masked.min(dim=-1, keepdim=True)[0]   # 1 where every key is masked
         return masked * (1.0 - full) * NEG_INF
 
-    def forward_all(self, image: torch.Tensor) -> list[tuple[torch.Tensor, torch.Tensor]]:
-        """All ``L + 1`` predictions ``(class_logits, mask_logits)`` (deep supervision); last = final."""
+    def _decode(self, image: torch.Tensor, aux: bool
+                ) -> list[tuple[torch.Tensor, torch.Tensor]]:
         feats = self.backbone(image)
         mask_features, mems = self.pixel_decoder(feats)
         B = image.shape[0]
@@ -242,19 +255,38 @@ class Segmenter(nn.Module):
             memories.append(m.flatten(2).transpose(1, 2) + self.level_embed.weight[lvl])
             mposes.append(sine_position_encoding(h, w, D, device=m.device).unsqueeze(0))
             strides.append(H4 // h)
+        # Inference: intermediate masks are only needed at the memory resolutions, and
+        # avg_pool(emb . F) == emb . avg_pool(F) (linear), so pool the features once per level.
+        pooled = None if aux else [F.avg_pool2d(mask_features, s, s) if s > 1 else mask_features
+                                   for s in strides]
         qpos = self.query_pos.weight.unsqueeze(0).expand(B, -1, -1)
         tgt = self.query_feat.weight.unsqueeze(0).expand(B, -1, -1)
-        preds = [self._predict(tgt, mask_features)]
-        for i, layer in enumerate(self.layers):
+        preds: list[tuple[torch.Tensor, torch.Tensor]] = []
+        n = len(self.layers)
+        for i in range(n + 1):
+            cls, emb = self._head(tgt)
+            if aux or i == n:
+                preds.append((cls, self._masks(emb, mask_features)))
+            if i == n:
+                break
             lvl = i % 3
-            bias = self._attn_bias(preds[-1][1], strides[lvl])
-            tgt = layer(tgt, qpos, memories[lvl], mposes[lvl], bias)
-            preds.append(self._predict(tgt, mask_features))
+            if aux:
+                bias = self._attn_bias(preds[-1][1], strides[lvl])
+            else:
+                bias = self._attn_bias(self._masks(emb, pooled[lvl]), 1)
+            tgt = self.layers[i](tgt, qpos, memories[lvl], mposes[lvl], bias)
         return preds
 
+    def forward_all(self, image: torch.Tensor) -> list[tuple[torch.Tensor, torch.Tensor]]:
+        """All ``L + 1`` predictions ``(class_logits, mask_logits)`` (deep supervision); last = final."""
+        return self._decode(image, aux=True)
+
     def forward(self, image: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """``image`` (B, 3, S, S) -> ``class_logits`` (B, Q, C+1), ``mask_logits`` (B, Q, S/4, S/4)."""
-        return self.forward_all(image)[-1]
+        """``image`` (B, 3, S, S) -> ``class_logits`` (B, Q, C+1), ``mask_logits`` (B, Q, S/4, S/4).
+
+        Same result as ``forward_all(image)[-1]`` without the full-resolution intermediate masks.
+        """
+        return self._decode(image, aux=False)[-1]
 
 
 def segmenter_spec(size: str) -> ModelSpec:

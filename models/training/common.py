@@ -437,12 +437,13 @@ class FolderSource(DataSource):
 
 
 class GeneratorSource(DataSource):
-    """Samples rendered on the fly by ``monodbh.models.synthetic.iter_samples``.
+    """Samples rendered on the fly by the synthetic generator.
 
-    Sample ``index`` is ``next(iter_samples(seed_i, 1, size=size, **opts))`` with
-    ``seed_i = (seed * 1_000_003 + index) % 2**31``: random access, deterministic.
-    ``pool``: if given, indices wrap modulo ``pool`` (a finite pseudo-dataset, so the LRU
-    ``cache`` of rendered samples can be reused across epochs).
+    Sample ``index`` is ``monodbh.models.synthetic.generate_sample(seed, index, size, **opts)``,
+    i.e. exactly sample ``index`` of ``dbh synth`` with the same seed and size (random access,
+    deterministic). ``pool``: if given, indices wrap modulo ``pool`` (a finite pseudo-dataset, so
+    the LRU ``cache`` of rendered samples is reused across epochs; default cache = pool).
+    Rendering costs about 1-2 s per sample on one core: prefer a ``dbh synth`` folder.
     """
 
     def __init__(self, seed: int = 0, size: tuple[int, int] = (320, 240),
@@ -470,10 +471,10 @@ class GeneratorSource(DataSource):
         if index in self._cache:
             self._cache.move_to_end(index)
             return self._cache[index]
-        from monodbh.models.synthetic import iter_samples
+        from monodbh.models.synthetic import generate_sample
 
-        s = next(iter(iter_samples((self.seed * 1_000_003 + index) % 2**31, 1, size=self.size,
-                                   **self.opts)))
+        s = generate_sample(self.seed, index, self.size, **self.opts)
+        s.pop("scene", None)  # renderer objects: not needed for training, large
         if self._cache_size:
             self._cache[index] = s
             if len(self._cache) > self._cache_size:
