@@ -26,5 +26,18 @@ app.command("calibrate-pose")(_calibrate_pose)
 # --- end calibration commands ------------------------------------------------------------------
 
 
+# --- measuring commands (issue 6; logic in cli/measure_cmd.py, reconstruct_cmd.py, eval_cmd.py;
+# those modules import only typer at top level, everything heavy inside the commands) ----------
+from .eval_cmd import bench as _bench, evaluate as _evaluate  # noqa: E402
+from .measure_cmd import measure as _measure  # noqa: E402
+from .reconstruct_cmd import reconstruct as _reconstruct  # noqa: E402
+
+app.command("measure")(_measure)
+app.command("reconstruct")(_reconstruct)
+app.command("eval")(_evaluate)
+app.command("bench")(_bench)
+# --- end measuring commands --------------------------------------------------------------------
+
+
 def main() -> None:
     app()

@@ -1,0 +1,205 @@
+"""``dbh measure``: DBH of the roped tree in one or many photos.
+
+Top-level imports stay light (typer only); numpy, OpenCV, the pipeline and rich are imported
+inside the command so ``dbh --help`` starts fast.
+"""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import List, Optional
+
+import typer
+
+__all__ = ["measure", "parse_pick", "load_calib", "fail", "make_backend", "measure_fn_option",
+           "session_factory_option"]
+
+
+def parse_pick(text: Optional[str]) -> Optional[tuple[float, float]]:
+    """``"1520,980"`` -> (1520.0, 980.0); None -> None.
+
+    Raises
+    ------
+    typer.BadParameter
+        Not two finite, non-negative numbers separated by a comma.
+    """
+    if text is None:
+        return None
+    parts = text.replace(" ", "").split(",")
+    try:
+        if len(parts) != 2:
+            raise ValueError
+        x, y = float(parts[0]), float(parts[1])
+    except ValueError:
+        raise typer.BadParameter(f"expected X,Y pixel coordinates, got {text!r}", param_hint="--pick")
+    if not (math.isfinite(x) and math.isfinite(y)) or x < 0 or y < 0:
+        raise typer.BadParameter(f"pixel coordinates must be finite and >= 0, got {text!r}",
+                                 param_hint="--pick")
+    return x, y
+
+
+def fail(message: str, code: int = 1) -> "typer.Exit":
+    """Print ``error: message`` on stderr and return the Exit to raise."""
+    typer.echo(f"error: {message}", err=True)
+    return typer.Exit(code)
+
+
+def load_calib(path: Path):
+    """The camera of ``--calib`` (exit 1 with ``error: ...`` when it cannot be read)."""
+    from monodbh.calib import MonodbhError, load_camera
+
+    try:
+        return load_camera(path)
+    except MonodbhError as exc:
+        raise fail(str(exc))
+
+
+# Options shared by the measuring commands: which function/session to run. Hidden in
+# measure/reconstruct/eval (tests inject a fake function here); shown by ``dbh bench``.
+def measure_fn_option(hidden: bool = True, what: str = "measure_photo"):
+    return typer.Option(None, "--measure-fn", hidden=hidden, metavar="MODULE:FUNCTION",
+                        help=f"Function to run instead of the pipeline's {what}.", show_default=False)
+
+
+def session_factory_option(hidden: bool = True):
+    return typer.Option(None, "--session-factory", hidden=hidden, metavar="MODULE:FACTORY",
+                        help="Session factory called as factory(models_dir=...) ('none': no session; "
+                             "default: the function module's Session, else the pipeline's).",
+                        show_default=False)
+
+
+def make_backend(measure_fn: Optional[str], session_factory: Optional[str], models_dir: Optional[Path],
+                 default_fn: Optional[str] = None):
+    from monodbh.toolkit.batch import DEFAULT_MEASURE, DEFAULT_SESSION, Backend
+
+    session = DEFAULT_SESSION if session_factory is None else session_factory
+    if session.lower() in ("", "none"):
+        session = None
+    elif session_factory is None and measure_fn:
+        # a custom function brings its own module's Session when it has one
+        mod = measure_fn.partition(":")[0]
+        session = f"{mod}:Session" if _has_attr(mod, "Session") else None
+    return Backend(measure=measure_fn or default_fn or DEFAULT_MEASURE, session=session,
+                   models_dir=str(models_dir) if models_dir else None)
+
+
+def _has_attr(module: str, attr: str) -> bool:
+    import importlib
+
+    try:
+        return hasattr(importlib.import_module(module), attr)
+    except ImportError:
+        return False
+
+
+def _table(results, console) -> None:
+    from rich.table import Table
+    from rich.text import Text
+
+    from monodbh.toolkit.overlay import format_dbh
+
+    t = Table(show_header=True, header_style="bold", expand=False)
+    t.add_column("photo", overflow="fold")
+    t.add_column("DBH", justify="right", no_wrap=True)
+    t.add_column("distance", justify="right", no_wrap=True)
+    t.add_column("scale", no_wrap=True)
+    t.add_column("flags / error", overflow="fold")
+    t.add_column("time", justify="right", no_wrap=True)
+    for r in results:
+        total = (r.timings_ms or {}).get("total")
+        tm = f"{total / 1000:.2f} s" if total is not None else ""
+        if r.error:
+            t.add_row(r.photo, Text("-", style="red"), "", "", Text(r.error, style="red"), tm)
+        else:
+            t.add_row(r.photo, Text(format_dbh(r.dbh_cm, r.dbh_sigma_cm), style="bold"),
+                      f"{r.distance_m:.2f} m" if r.distance_m is not None else "-",
+                      r.scale_source or "-", Text(", ".join(r.flags), style="yellow"), tm)
+    console.print(t)
+
+
+def measure(
+    photos: List[str] = typer.Argument(..., help="Photos (or folders of photos) of roped trees.",
+                                       show_default=False),
+    calib: Path = typer.Option(..., "--calib", "-c", help="Camera file (cam.yaml from dbh calibrate).",
+                               show_default=False),
+    as_json: bool = typer.Option(False, "--json", help="One JSON object per photo per line on stdout."),
+    csv_out: Optional[Path] = typer.Option(None, "--csv", help="Also write a CSV (a row per photo, "
+                                           "written as each photo finishes).", show_default=False),
+    out_dir: Optional[Path] = typer.Option(None, "--out-dir", "-o", help="Write <stem>_overlay.png, "
+                                           "<stem>_tree.ply, results.jsonl and summary.json here.",
+                                           show_default=False),
+    workers: int = typer.Option(1, "--workers", "-j", min=1, help="Processes measuring in parallel "
+                                "(each loads the models once)."),
+    pick: Optional[str] = typer.Option(None, "--pick", metavar="X,Y", help="Pixel on the roped tree "
+                                       "(when several trees carry a rope).", show_default=False),
+    models_dir: Optional[Path] = typer.Option(None, "--models-dir", help="Folder of the ONNX models "
+                                              "(default: the shipped ones).", show_default=False),
+    measure_fn: Optional[str] = measure_fn_option(),
+    session_factory: Optional[str] = session_factory_option(),
+) -> None:
+    """Measure the DBH of the roped tree in each photo.
+
+    Exit status: 0 when every photo was measured, 1 when some failed (their rows carry the
+    error; the others are still written), 2 on usage errors.
+    """
+    import sys
+
+    pick_xy = parse_pick(pick)
+    from monodbh.calib import MonodbhError
+    from monodbh.toolkit.batch import Job, ResultWriter, expand_photos, iter_results, unique_stems
+
+    camera = load_calib(calib)
+    paths = expand_photos(photos)
+    if not paths:
+        raise fail("no photos found in " + ", ".join(photos), 2)
+    stems = unique_stems(paths)
+    jobs = [Job(i, p, camera, pick_xy=pick_xy, out_dir=str(out_dir) if out_dir else None,
+                out_stem=s) for i, (p, s) in enumerate(zip(paths, stems))]
+    backend = make_backend(measure_fn, session_factory, models_dir)
+
+    from rich.console import Console
+
+    err_console = Console(stderr=True)
+    try:
+        writer = ResultWriter(json_stream=sys.stdout if as_json else None, csv_path=csv_out,
+                              out_dir=out_dir, meta={"calib": str(calib), "workers": workers})
+    except MonodbhError as exc:
+        raise fail(str(exc))
+    interrupted = False
+    with writer:
+        try:
+            _run(jobs, backend, workers, writer, err_console)
+        except KeyboardInterrupt:
+            interrupted = True
+        except MonodbhError as exc:  # the pipeline itself cannot start (models, import)
+            writer.finish(interrupted=True)
+            raise fail(str(exc))
+        summary = writer.finish(interrupted=interrupted)
+    if not as_json:
+        _table(writer.results, Console())
+    n, bad = summary["photos"], summary["failed"]
+    if interrupted:
+        err_console.print(f"interrupted after {n} of {len(jobs)} photos", style="yellow")
+        raise typer.Exit(130)
+    if len(jobs) > 1 or bad:
+        err_console.print(f"{n - bad} of {n} photos measured" + (f", {bad} failed" if bad else ""),
+                          style="red" if bad else None, highlight=False)
+    raise typer.Exit(1 if bad else 0)
+
+
+def _run(jobs, backend, workers, writer, err_console) -> None:
+    from monodbh.toolkit.batch import iter_results
+
+    if len(jobs) == 1:
+        for res in iter_results(jobs, backend, workers=1):
+            writer.add(res)
+        return
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+
+    with Progress(TextColumn("[progress.description]{task.description}"), BarColumn(),
+                  MofNCompleteColumn(), TimeRemainingColumn(), console=err_console,
+                  transient=True) as prog:
+        task = prog.add_task("measuring", total=len(jobs))
+        for res in iter_results(jobs, backend, workers=workers):
+            writer.add(res)
+            prog.update(task, advance=1, description=Path(res.photo).name)

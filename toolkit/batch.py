@@ -1,0 +1,577 @@
+"""Batch measuring: run a measure function over many photos, robustly, serially or in processes.
+
+The measure function is named by a ``"module:attribute"`` spec (default
+:data:`DEFAULT_MEASURE`, the pipeline's ``measure_photo``) so worker processes can import it and
+``dbh bench`` can time any function with the same signature::
+
+    measure(path: str, camera, *, pick_xy=None, want_cloud=False, want_debug=False,
+            session=None[, gt=dict]) -> MeasureResult
+
+``session`` comes from the session factory spec (default :data:`DEFAULT_SESSION`, called as
+``factory(models_dir=...)`` once per process); ``gt`` is passed only for ``dbh eval
+--gt-perception``.
+
+Guarantees of :func:`run_job` / :func:`iter_results`: one :class:`MeasureResult` per photo, in
+input order, never an exception for a bad photo: a :class:`~monodbh.calib.errors.MonodbhError`
+becomes the row's ``error`` (its one-line message); any other exception becomes
+``"internal error: <ExcType>: <message>"``. ``KeyboardInterrupt`` propagates. A problem with the
+function or session themselves (import error, models missing) is raised once as
+:class:`BatchError`, since every photo would fail the same way.
+
+:class:`ResultWriter` writes the rows as they come: JSON lines on a stream (flushed per line),
+a CSV appended and flushed per photo, and with an output folder ``results.jsonl`` and
+``summary.json`` (rewritten atomically, temp file + ``os.replace``).
+"""
+from __future__ import annotations
+
+import csv
+import importlib
+import io
+import json
+import math
+import os
+import statistics
+import tempfile
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Iterable, Iterator, Optional, Sequence
+
+from monodbh.calib.errors import MonodbhError
+
+from .result import RESULT_FIELDS, MeasureResult
+
+__all__ = ["Backend", "Job", "BatchError", "ResultWriter", "DEFAULT_MEASURE", "DEFAULT_SESSION",
+           "DEFAULT_RECONSTRUCT", "PHOTO_EXTENSIONS", "load_object", "run_job", "iter_results",
+           "error_result", "normalise_result", "expand_photos", "unique_stems", "csv_row",
+           "atomic_write_text", "one_line", "summarise", "bench_child", "BENCH_CHILD_CODE", "BENCH_MARK"]
+
+DEFAULT_MEASURE = "monodbh.toolkit.pipeline:measure_photo"
+DEFAULT_RECONSTRUCT = "monodbh.toolkit.pipeline:reconstruct_photo"
+DEFAULT_SESSION = "monodbh.toolkit.pipeline:Session"
+
+#: File extensions picked up when a folder is given instead of photos.
+PHOTO_EXTENSIONS = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".webp", ".bmp", ".heic", ".heif")
+
+
+class BatchError(MonodbhError):
+    """The measure function or its session cannot be set up (fatal for the whole batch)."""
+
+
+def one_line(text: Any, limit: int = 400) -> str:
+    """Collapse whitespace/newlines so the message fits one line (cut at ``limit`` characters)."""
+    s = " ".join(str(text).split())
+    return s if len(s) <= limit else s[:limit - 3] + "..."
+
+
+def load_object(spec: str) -> Any:
+    """Import ``"package.module:attribute"`` (attribute may be dotted).
+
+    Raises
+    ------
+    BatchError
+        Malformed spec, module not importable, or attribute missing.
+    """
+    mod_name, sep, attr = str(spec).partition(":")
+    if not sep or not mod_name or not attr:
+        raise BatchError(f"{spec!r}: expected 'module:function'")
+    try:
+        obj = importlib.import_module(mod_name)
+    except ImportError as exc:
+        raise BatchError(f"cannot import {mod_name} for {spec} ({one_line(exc)})") from None
+    try:
+        for part in attr.split("."):
+            obj = getattr(obj, part)
+    except AttributeError:
+        raise BatchError(f"{mod_name} has no attribute {attr!r}") from None
+    return obj
+
+
+@dataclass(frozen=True)
+class Backend:
+    """Which measure function and session factory to use (picklable, by name).
+
+    Parameters
+    ----------
+    measure : str
+        ``"module:function"`` of the measure (or reconstruct) function.
+    session : str or None
+        ``"module:factory"`` called as ``factory(models_dir=models_dir)``; None or ``""`` for
+        no session (``session=None`` is passed).
+    models_dir : str or None
+        Passed to the session factory.
+    """
+    measure: str = DEFAULT_MEASURE
+    session: Optional[str] = DEFAULT_SESSION
+    models_dir: Optional[str] = None
+
+    def function(self) -> Callable[..., Any]:
+        fn = load_object(self.measure)
+        if not callable(fn):
+            raise BatchError(f"{self.measure} is not callable")
+        return fn
+
+    def new_session(self) -> Any:
+        """A new session, or None without a session factory.
+
+        Raises
+        ------
+        BatchError
+            The factory cannot be imported or fails unexpectedly (MonodbhErrors pass through).
+        """
+        if not self.session:
+            return None
+        factory = load_object(self.session)
+        try:
+            return factory(models_dir=self.models_dir)
+        except MonodbhError:
+            raise
+        except Exception as exc:
+            raise BatchError(f"cannot create the session ({type(exc).__name__}: {one_line(exc)})") from None
+
+
+@dataclass
+class Job:
+    """One photo to measure.
+
+    Attributes
+    ----------
+    index : int
+        Position in the batch (results come back in this order).
+    photo : str
+        Path as given by the user (copied into ``MeasureResult.photo``).
+    camera : object
+        Camera model (``monodbh.calib.Camera``), picklable.
+    pick_xy : (float, float) or None
+        Pixel the user clicked on the roped tree.
+    out_dir : str or None
+        Write ``<out_stem>_overlay.png`` (and ``<out_stem>_tree.ply`` when the result has a
+        ``debug['tree_cloud']``) there.
+    out_stem : str or None
+        File stem for the outputs (default: the photo's stem).
+    gt : (str, int) or None
+        ``(synth folder, sample index)``: read the sample with
+        ``monodbh.models.synthetic.io.read_sample`` and pass it as ``gt=``.
+    want_cloud : bool
+        Ask the pipeline for the tree's cloud (implied by ``out_dir``).
+    """
+    index: int
+    photo: str
+    camera: Any
+    pick_xy: Optional[tuple[float, float]] = None
+    out_dir: Optional[str] = None
+    out_stem: Optional[str] = None
+    gt: Optional[tuple[str, int]] = None
+    want_cloud: bool = False
+
+
+def error_result(photo: str, exc: BaseException | str) -> MeasureResult:
+    """Row for a failed photo: ``error`` set, every measurement None."""
+    if isinstance(exc, str):
+        msg = exc
+    elif isinstance(exc, MonodbhError):
+        msg = str(exc) or type(exc).__name__
+    else:
+        msg = f"internal error: {type(exc).__name__}: {exc}"
+    return MeasureResult(photo=str(photo), error=one_line(msg))
+
+
+def normalise_result(res: Any, photo: str) -> MeasureResult:
+    """Enforce the record's contract on what a measure function returned.
+
+    ``photo`` is the user's path; ``dbh_cm``/``dbh_sigma_cm`` are None exactly when ``error``
+    is set; messages are one line; ``flags`` is a list of str.
+    """
+    if not isinstance(res, MeasureResult):
+        return error_result(photo, f"internal error: TypeError: measure function returned "
+                                   f"{type(res).__name__}, not MeasureResult")
+    res.photo = str(photo)
+    res.flags = [str(f) for f in (res.flags or [])]
+    res.timings_ms = dict(res.timings_ms or {})
+    res.estimates_cm = dict(res.estimates_cm or {})
+    if res.error:
+        res.error = one_line(res.error)
+        res.dbh_cm = res.dbh_sigma_cm = None
+    else:
+        res.error = None
+        bad = res.dbh_cm is None or not math.isfinite(float(res.dbh_cm))
+        if bad:
+            keep = res.debug
+            res = error_result(photo, f"internal error: no DBH and no error (dbh_cm={res.dbh_cm!r})")
+            res.debug = keep
+    return res
+
+
+def _write_outputs(job: Job, res: MeasureResult) -> None:
+    """Overlay PNG and tree PLY of one photo; failures become flags, never exceptions."""
+    from .overlay import write_overlay
+
+    out = Path(job.out_dir)
+    stem = job.out_stem or Path(job.photo).stem
+    try:
+        write_overlay(out / f"{stem}_overlay.png", res)
+    except MonodbhError:  # e.g. the photo itself cannot be read: nothing to draw on
+        pass
+    except Exception:
+        res.flags.append("overlay_failed")
+    cloud = (res.debug or {}).get("tree_cloud")
+    if cloud is not None and len(cloud):
+        try:
+            from .cloud_io import write_cloud
+
+            write_cloud(out / f"{stem}_tree.ply", cloud)
+        except Exception:
+            res.flags.append("cloud_write_failed")
+
+
+def run_job(job: Job, measure: Callable[..., Any], session: Any = None, *,
+            keep_debug: bool = False) -> MeasureResult:
+    """Measure one photo and write its side outputs; never raises for a bad photo.
+
+    ``timings_ms['total']`` is set to the wall time of the measure call when the function did
+    not report one. ``debug`` is dropped unless ``keep_debug``.
+    """
+    t0 = time.perf_counter()
+    want_debug = bool(job.out_dir) or keep_debug
+    try:
+        if not os.path.isfile(job.photo):
+            from monodbh.calib.errors import PhotoError
+
+            raise PhotoError(f"{job.photo}: " + ("is a directory, not a photo"
+                                                 if os.path.isdir(job.photo) else "no such file"))
+        kw: dict[str, Any] = dict(pick_xy=job.pick_xy, want_cloud=bool(job.want_cloud or job.out_dir),
+                                  want_debug=want_debug, session=session)
+        if job.gt is not None:
+            from monodbh.models.synthetic.io import read_sample
+
+            kw["gt"] = read_sample(job.gt[0], int(job.gt[1]))
+        res = normalise_result(measure(job.photo, job.camera, **kw), job.photo)
+    except (KeyboardInterrupt, SystemExit):
+        raise
+    except Exception as exc:  # MonodbhError -> its message; others -> internal error
+        res = error_result(job.photo, exc)
+    res.timings_ms.setdefault("total", (time.perf_counter() - t0) * 1000.0)
+    if job.out_dir:
+        _write_outputs(job, res)
+    if not keep_debug:
+        res.debug = {}
+    return res
+
+
+# -- processes ---------------------------------------------------------------------------------
+_WORKER: dict[str, Any] = {}
+
+
+def _worker_init(backend: Backend) -> None:
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent handles Ctrl-C and cancels
+    _WORKER.clear()
+    try:
+        _WORKER["fn"] = backend.function()
+        _WORKER["session"] = backend.new_session()
+    except Exception as exc:  # reported on the first job, raised in the parent
+        _WORKER["fatal"] = (f"{exc}" if isinstance(exc, MonodbhError)
+                            else f"{type(exc).__name__}: {one_line(exc)}")
+
+
+def _worker_run(job: Job) -> MeasureResult | tuple[str, str]:
+    if "fatal" in _WORKER:
+        return ("fatal", _WORKER["fatal"])
+    return run_job(job, _WORKER["fn"], _WORKER["session"])
+
+
+def iter_results(jobs: Sequence[Job], backend: Backend, *, workers: int = 1,
+                 keep_debug: bool = False, session: Any = None) -> Iterator[MeasureResult]:
+    """Measure ``jobs`` and yield their results in order, as soon as each is available.
+
+    Parameters
+    ----------
+    jobs : sequence of Job
+    backend : Backend
+        Measure function and session factory.
+    workers : int
+        1: in this process (one session, created on first use unless ``session`` is given);
+        N > 1: N spawned processes, each creating its own session once.
+    keep_debug : bool
+        Keep ``result.debug`` (serial mode only; worker results never carry it).
+    session : object, optional
+        Ready session for serial mode.
+
+    Raises
+    ------
+    BatchError / MonodbhError
+        The measure function or session cannot be set up.
+    """
+    jobs = list(jobs)
+    if not jobs:
+        return
+    if workers <= 1 or len(jobs) == 1:
+        fn = backend.function()
+        if session is None:
+            session = backend.new_session()
+        for job in jobs:
+            yield run_job(job, fn, session, keep_debug=keep_debug)
+        return
+
+    import multiprocessing as mp
+    from concurrent.futures import ProcessPoolExecutor
+    from concurrent.futures.process import BrokenProcessPool
+
+    pool = ProcessPoolExecutor(max_workers=min(workers, len(jobs)), mp_context=mp.get_context("spawn"),
+                               initializer=_worker_init, initargs=(backend,))
+    try:
+        futures = [pool.submit(_worker_run, job) for job in jobs]
+        for job, fut in zip(jobs, futures):
+            try:
+                res = fut.result()
+            except BrokenProcessPool:
+                res = error_result(job.photo, "internal error: BrokenProcessPool: a worker process "
+                                              "died (out of memory?)")
+            except Exception as exc:  # e.g. unpicklable result
+                res = error_result(job.photo, exc)
+            if isinstance(res, tuple):
+                raise BatchError(res[1])
+            yield res
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)
+
+
+# -- inputs --------------------------------------------------------------------------------------
+def expand_photos(paths: Iterable[str]) -> list[str]:
+    """Photos in the order given; a folder expands to its image files (sorted, not recursive).
+
+    Missing paths are kept (they become error rows).
+    """
+    out: list[str] = []
+    for p in paths:
+        p = str(p)
+        if os.path.isdir(p):
+            out += sorted(str(q) for q in Path(p).iterdir()
+                          if q.is_file() and q.suffix.lower() in PHOTO_EXTENSIONS)
+        else:
+            out.append(p)
+    return out
+
+
+def unique_stems(photos: Sequence[str]) -> list[str]:
+    """Output file stems, unique within the batch (``IMG_1``, ``IMG_1_2``, ...)."""
+    seen: dict[str, int] = {}
+    out = []
+    for p in photos:
+        stem = Path(p).stem or "photo"
+        n = seen.get(stem, 0) + 1
+        seen[stem] = n
+        out.append(stem if n == 1 else f"{stem}_{n}")
+    return out
+
+
+# -- outputs -------------------------------------------------------------------------------------
+def atomic_write_text(path: str | os.PathLike, text: str) -> Path:
+    """Write ``text`` to ``path`` via a temporary file in the same folder and ``os.replace``."""
+    p = Path(path)
+    p.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{p.name}.", suffix=".tmp", dir=p.parent)
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8", newline="") as f:
+            f.write(text)
+        os.replace(tmp, p)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except OSError:
+            pass
+        raise
+    return p
+
+
+def csv_row(d: dict) -> list[str]:
+    """CSV cells of a JSON dict: None -> empty, lists/dicts -> compact JSON, numbers as text."""
+    cells = []
+    for k in RESULT_FIELDS:
+        v = d.get(k)
+        if v is None:
+            cells.append("")
+        elif isinstance(v, (list, dict)):
+            cells.append(json.dumps(v, separators=(",", ":"), ensure_ascii=False))
+        else:
+            cells.append(str(v))
+    return cells
+
+
+def _json_line(d: dict) -> str:
+    return json.dumps(d, ensure_ascii=False, allow_nan=False, default=_json_default)
+
+
+def _json_default(o: Any) -> Any:
+    try:
+        import numpy as np
+
+        if isinstance(o, np.generic):
+            return o.item()
+        if isinstance(o, np.ndarray):
+            return o.tolist()
+    except ImportError:  # pragma: no cover
+        pass
+    raise TypeError(f"{type(o).__name__} is not JSON serialisable")
+
+
+def summarise(results: Sequence[MeasureResult]) -> dict:
+    """Counts, DBH range and median stage timings of a batch (JSON-serialisable)."""
+    ok = [r for r in results if r.error is None]
+    stages: dict[str, list[float]] = {}
+    for r in results:
+        for k, v in (r.timings_ms or {}).items():
+            stages.setdefault(k, []).append(float(v))
+    dbh = [float(r.dbh_cm) for r in ok]
+    return {
+        "photos": len(results), "measured": len(ok), "failed": len(results) - len(ok),
+        "failed_photos": [r.photo for r in results if r.error is not None],
+        "dbh_cm": ({"min": round(min(dbh), 2), "median": round(statistics.median(dbh), 2),
+                    "max": round(max(dbh), 2)} if dbh else None),
+        "timings_ms_median": {k: round(statistics.median(v), 1) for k, v in stages.items()},
+    }
+
+
+class ResultWriter:
+    """Write batch rows as they come; finish with atomic ``results.jsonl``/``summary.json``.
+
+    Parameters
+    ----------
+    json_stream : text stream, optional
+        Gets one JSON object per line (exactly :data:`RESULT_FIELDS`), flushed per line.
+    csv_path : path, optional
+        CSV with a header of :data:`RESULT_FIELDS`; created (truncated) on open, one row
+        appended and flushed (``fsync``) per result.
+    out_dir : path, optional
+        Folder for ``results.jsonl`` and ``summary.json``, rewritten atomically by
+        :meth:`finish`.
+    meta : dict, optional
+        Extra keys for ``summary.json`` (e.g. the calibration file).
+
+    Use as a context manager; :meth:`add` per result, :meth:`finish` at the end (also on
+    interruption, with ``interrupted=True``).
+    """
+
+    def __init__(self, *, json_stream: Optional[io.TextIOBase] = None,
+                 csv_path: Optional[str | os.PathLike] = None,
+                 out_dir: Optional[str | os.PathLike] = None, meta: Optional[dict] = None) -> None:
+        self.json_stream = json_stream
+        self.out_dir = Path(out_dir) if out_dir else None
+        self.meta = dict(meta or {})
+        self.results: list[MeasureResult] = []
+        self._lines: list[str] = []
+        self._csv_file = None
+        self._csv = None
+        if csv_path:
+            p = Path(csv_path)
+            p.parent.mkdir(parents=True, exist_ok=True)
+            try:
+                self._csv_file = open(p, "w", encoding="utf-8", newline="")
+            except OSError as exc:
+                raise MonodbhError(f"{p}: cannot write CSV ({exc.strerror or exc})") from None
+            self._csv = csv.writer(self._csv_file)
+            self._csv.writerow(RESULT_FIELDS)
+            self._flush_csv()
+        if self.out_dir:
+            self.out_dir.mkdir(parents=True, exist_ok=True)
+
+    def _flush_csv(self) -> None:
+        self._csv_file.flush()
+        try:
+            os.fsync(self._csv_file.fileno())
+        except OSError:  # pragma: no cover - e.g. pipes
+            pass
+
+    def add(self, res: MeasureResult) -> dict:
+        """Write one result everywhere; returns its JSON dict."""
+        d = res.to_json_dict()
+        line = _json_line(d)
+        self.results.append(res)
+        self._lines.append(line)
+        if self.json_stream is not None:
+            self.json_stream.write(line + "\n")
+            self.json_stream.flush()
+        if self._csv is not None:
+            self._csv.writerow(csv_row(d))
+            self._flush_csv()
+        return d
+
+    def finish(self, *, interrupted: bool = False, extra: Optional[dict] = None) -> Optional[dict]:
+        """Close the CSV; write ``results.jsonl`` and ``summary.json`` atomically (out_dir)."""
+        if self._csv_file is not None and not self._csv_file.closed:
+            self._csv_file.close()
+        summary = {**self.meta, **summarise(self.results), "interrupted": interrupted, **(extra or {})}
+        if self.out_dir:
+            atomic_write_text(self.out_dir / "results.jsonl", "".join(s + "\n" for s in self._lines))
+            atomic_write_text(self.out_dir / "summary.json",
+                              json.dumps(summary, indent=1, ensure_ascii=False, default=_json_default) + "\n")
+        return summary
+
+    def __enter__(self) -> "ResultWriter":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if self._csv_file is not None and not self._csv_file.closed:
+            self._csv_file.close()
+
+
+# -- benchmark child process (``dbh bench``) -------------------------------------------------------
+BENCH_MARK = "MONODBH_BENCH "
+
+#: Code run by ``python -c`` in the fresh benchmark process; ``t0`` is taken before any import.
+BENCH_CHILD_CODE = ("import time; t0 = time.perf_counter(); w0 = time.time(); import sys; "
+                    "from monodbh.toolkit.batch import bench_child; sys.exit(bench_child(t0, w0, sys.argv[1]))")
+
+
+def _maxrss_mib() -> float:
+    import resource
+    import sys
+
+    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return rss / 2**20 if sys.platform == "darwin" else rss / 1024.0
+
+
+def bench_child(t0: float, wall0: float, args_json: str) -> int:
+    """Body of the benchmark process: time imports, session creation and repeated measures.
+
+    Prints one line ``MONODBH_BENCH {json}`` on stdout with ``import_s``, ``session_s``,
+    ``ready_wall`` (``time.time()`` when ready), ``rss_startup_mib``, ``runs`` (list of
+    ``{"wall_ms", "timings_ms", "error"}``, warm-up runs first) and ``rss_peak_mib``. Returns the
+    exit status (1 on a setup error, reported as ``{"error": ...}``).
+    """
+    import sys
+
+    args = json.loads(args_json)
+
+    def emit(d: dict) -> None:
+        sys.stdout.write(BENCH_MARK + json.dumps(d, default=_json_default) + "\n")
+        sys.stdout.flush()
+
+    try:
+        backend = Backend(measure=args["measure"], session=args.get("session"),
+                          models_dir=args.get("models_dir"))
+        fn = backend.function()
+        t_import = time.perf_counter()
+        session = backend.new_session()
+        t_session = time.perf_counter()
+        ready_wall = time.time()
+        rss_startup = _maxrss_mib()
+        from monodbh.calib import load_camera
+
+        camera = load_camera(args["calib"])
+    except Exception as exc:
+        emit({"error": str(exc) if isinstance(exc, MonodbhError)
+              else f"internal error: {type(exc).__name__}: {one_line(exc)}"})
+        return 1
+    runs = []
+    pick = tuple(args["pick_xy"]) if args.get("pick_xy") else None
+    for _ in range(int(args.get("warmup", 1)) + int(args.get("repeat", 5))):
+        t = time.perf_counter()
+        res = run_job(Job(0, args["photo"], camera, pick_xy=pick), fn, session)
+        runs.append({"wall_ms": (time.perf_counter() - t) * 1000.0, "timings_ms": res.timings_ms,
+                     "error": res.error})
+    emit({"import_s": t_import - t0, "session_s": t_session - t_import, "start_wall": wall0,
+          "ready_wall": ready_wall, "rss_startup_mib": rss_startup, "runs": runs,
+          "rss_peak_mib": _maxrss_mib()})
+    return 0
