@@ -1,0 +1,56 @@
+"""Ground-truth perception from a ``dbh synth`` sample (the single-view floor of ``dbh eval``).
+
+Feeds the same geometry as the networks (:func:`~.measure_core.measure_from_perception`)
+with exact masks, depth and silhouette depth maps, so the difference between the two runs is
+what perception costs.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from .measure_core import Perception
+
+__all__ = ["perception_from_ground_truth"]
+
+
+def perception_from_ground_truth(sample: dict, camera, *, use_silhouette: bool = True) -> Perception | None:
+    """Build :class:`Perception` from a sample dict (``rgb``, ``instance``, ``semantic``,
+    ``rope``, ``depth``, ``z1``, ``z2``, ``meta``). Returns None when the scene has no rope."""
+    meta = sample["meta"]
+    tid = meta.get("roped_tree")
+    if not tid:
+        return None
+    inst = sample["instance"]
+    tree = inst == tid
+    rope = sample["rope"] & tree
+    ys, xs = np.nonzero(rope)
+    if len(xs) < 3:
+        return None
+    P = np.c_[xs, ys].astype(np.float64)
+    c = np.median(P, 0)
+    # band direction: principal axis of the rope pixels
+    w, V = np.linalg.eigh(np.cov((P - c).T))
+    d = V[:, -1]
+    # thickness: pixels / length
+    length = max(1.0, 4 * np.sqrt(max(w[-1], 1e-9)))
+    half = max(0.5, 0.5 * len(xs) / length)
+    # put the centre on the stem mid-line: middle of the tree run along the band through c
+    s = np.arange(-2000, 2000, 0.5)
+    q = c[None] + s[:, None] * d[None]
+    ok = (q[:, 0] >= 0) & (q[:, 0] <= tree.shape[1] - 1) & (q[:, 1] >= 0) & (q[:, 1] <= tree.shape[0] - 1)
+    inside = np.zeros(len(s), bool)
+    qi = np.round(q[ok]).astype(int)
+    inside[ok] = tree[qi[:, 1], qi[:, 0]]
+    i0 = int(np.argmin(np.abs(s)))
+    if inside[i0]:
+        lo = hi = i0
+        while lo > 0 and inside[lo - 1]:
+            lo -= 1
+        while hi < len(s) - 1 and inside[hi + 1]:
+            hi += 1
+        c = c + 0.5 * (s[lo] + s[hi]) * d
+    return Perception(
+        rgb=sample["rgb"], camera=camera, rope_xy=c, rope_dir=d, rope_half_px=float(min(half, 6.0)),
+        tree_mask=tree, ground_mask=sample["semantic"] == 1, depth=sample["depth"], depth_is_metric=True,
+        z1=sample["z1"] if use_silhouette else None, z2=sample["z2"] if use_silhouette else None,
+        source="ground_truth")

@@ -1,0 +1,275 @@
+"""The measuring pipeline: photo -> rope -> segmenter -> CDEN depth -> tree network -> DBH.
+
+Imports only ``monodbh.calib``, the runtime predictors of ``monodbh.models`` (onnxruntime)
+and this package; torch is loaded only through kornia, for the scene cloud.
+"""
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ..calib.errors import MonodbhError
+from .measure_core import Perception, measure_from_perception
+from .result import MeasureResult, PointCloud
+
+__all__ = ["Session", "measure_photo", "reconstruct_photo", "WORK_LONG_SIDE_PX", "unproject_depth"]
+
+#: Photos are processed at this long side (pixels); edges are located to sub-pixel precision.
+WORK_LONG_SIDE_PX = 1600
+
+
+class Session:
+    """Loaded ONNX predictors, reused across photos.
+
+    Parameters
+    ----------
+    models_dir : folder with ``manifest.json`` and the ``*.onnx`` files (default: the shipped
+        models inside the package).
+    threads : onnxruntime intra-op threads per model.
+    """
+
+    def __init__(self, models_dir: str | Path | None = None, threads: int = 2):
+        from ..models.runtime import Segmenter, load_manifest
+        from ..models.runtime_gan import DepthPredictor, TreePredictor
+        t0 = time.perf_counter()
+        mdir = Path(models_dir) if models_dir else Path(__file__).resolve().parent.parent / "models"
+        if not (mdir / "manifest.json").exists():
+            # editable installs keep models/ at the repository root
+            import monodbh.models as _m
+            mdir = Path(_m.__file__).resolve().parent
+        manifest = load_manifest(mdir / "manifest.json")
+        models = manifest.get("models", manifest)
+
+        def path_of(kind):
+            ent = models.get(kind)
+            if not ent:
+                raise MonodbhError(f"{mdir / 'manifest.json'}: no shipped '{kind}' model "
+                                   f"(train it with 'dbh train' and 'dbh export RUN_DIR --ship')")
+            p = mdir / ent["file"]
+            if not p.exists():
+                raise MonodbhError(f"{p}: model file missing")
+            return p
+        self.segmenter = Segmenter(path_of("segmenter"), threads=threads, manifest=manifest)
+        self.depth = DepthPredictor(str(path_of("cden")), threads=threads)
+        self.trees = TreePredictor(str(path_of("treenet")), threads=threads)
+        self.models_dir = mdir
+        self.load_ms = 1000 * (time.perf_counter() - t0)
+
+
+def _work_image(rgb: np.ndarray, camera):
+    """Downscale to :data:`WORK_LONG_SIDE_PX` and undistort; returns (image, pinhole camera, scale)."""
+    import cv2
+
+    from ..calib import Camera
+    H, W = rgb.shape[:2]
+    s = min(1.0, WORK_LONG_SIDE_PX / max(W, H))
+    w, h = int(round(W * s)), int(round(H * s))
+    img = cv2.resize(rgb, (w, h), interpolation=cv2.INTER_AREA) if s < 1 else rgb
+    cam = camera.for_image(W, H)
+    # same physical camera at the working resolution (exact scale per axis)
+    K = cam.K.copy()
+    sx, sy = w / W, h / H
+    K[0, 0] *= sx
+    K[0, 2] = (K[0, 2] + 0.5) * sx - 0.5
+    K[1, 1] *= sy
+    K[1, 2] = (K[1, 2] + 0.5) * sy - 0.5
+    cw = Camera(K, cam.dist, (w, h), pose=cam.pose)
+    if np.any(np.asarray(cam.dist) != 0):
+        und, K_new = cw.undistort_image(img, alpha=0.0)
+        pin = Camera(K_new, np.zeros(5), (w, h), pose=cam.pose)
+        return und, pin, (sx, sy), cw
+    return img, cw, (sx, sy), cw
+
+
+def _roped_instance(instance: np.ndarray, xy, radius: int = 6) -> int:
+    H, W = instance.shape
+    x, y = int(round(xy[0])), int(round(xy[1]))
+    win = instance[max(0, y - radius):y + radius + 1, max(0, x - radius):x + radius + 1]
+    ids = win[win > 0]
+    if ids.size == 0:
+        return 0
+    return int(np.bincount(ids).argmax())
+
+
+def unproject_depth(depth: np.ndarray, K: np.ndarray, step: int = 1) -> np.ndarray:
+    """Camera-frame points ``(H', W', 3)`` from a z-depth map with kornia.
+
+    Parameters
+    ----------
+    depth : (H, W) float32 metres.
+    K : (3, 3) pinhole intrinsics of the depth map.
+    step : keep every ``step``-th pixel in each direction (intrinsics adjusted).
+    """
+    import torch
+    from kornia.geometry.depth import depth_to_3d_v2
+    d = depth[::step, ::step]
+    Ks = K.astype(np.float64).copy()
+    Ks[:2] /= step          # pixel i of the subsampled map is pixel i * step of the original
+    with torch.inference_mode():
+        pts = depth_to_3d_v2(torch.from_numpy(np.ascontiguousarray(d, np.float32)),
+                             torch.from_numpy(Ks.astype(np.float32)))
+    return pts.numpy()
+
+
+def measure_photo(path: str, camera, *, pick_xy=None, want_cloud: bool = False, want_debug: bool = False,
+                  session: Session | None = None, gt: dict | None = None) -> MeasureResult:
+    """Measure the DBH of the roped tree in one photo.
+
+    Parameters
+    ----------
+    path : photo file.
+    camera : :class:`monodbh.calib.Camera` from cam.yaml (adapted to the photo here).
+    pick_xy : (x, y) photo pixel choosing among several roped trees.
+    want_cloud : also build the scene and tree point clouds (``result.debug['scene_cloud']``,
+        ``result.debug['tree_cloud']``).
+    want_debug : keep arrays for the overlay in ``result.debug``.
+    session : reuse loaded models (created on first use otherwise).
+    gt : ground-truth sample (``dbh eval --gt-perception``): masks, depth and silhouette from
+        the sample instead of the networks (the single-view floor).
+
+    Returns
+    -------
+    MeasureResult (``error`` set for photos that cannot be measured; never raises for those).
+    """
+    from ..calib import load_photo
+    tm = {}
+    t0 = time.perf_counter()
+    try:
+        rgb = load_photo(path)
+    except MonodbhError as e:
+        return MeasureResult(photo=str(path), error=str(e))
+    tm["load"] = 1000 * (time.perf_counter() - t0)
+    try:
+        if gt is not None:
+            return _measure_gt(path, rgb, camera, gt, tm)
+        return _measure(path, rgb, camera, pick_xy, want_cloud, want_debug, session or Session(), tm)
+    except MonodbhError as e:
+        return MeasureResult(photo=str(path), error=str(e), timings_ms=tm)
+
+
+def _measure_gt(path, rgb, camera, gt, tm):
+    from .gt import perception_from_ground_truth
+    H, W = rgb.shape[:2]
+    cam = camera.for_image(W, H)
+    sample = dict(gt)
+    sample["rgb"] = rgb
+    perc = perception_from_ground_truth(sample, cam)
+    if perc is None:
+        return MeasureResult(photo=str(path), error=f"{path}: no rope found (ground truth has none)", timings_ms=tm)
+    return measure_from_perception(perc, str(path), timings=tm)
+
+
+def _measure(path, rgb, camera, pick_xy, want_cloud, want_debug, sess: Session, tm):
+    import cv2
+
+    from .rope import detect_rope
+    H, W = rgb.shape[:2]
+    t = time.perf_counter()
+    img, cam, (sx, sy), _ = _work_image(rgb, camera)
+    h, w = img.shape[:2]
+    tm["undistort"] = 1000 * (time.perf_counter() - t)
+
+    t = time.perf_counter()
+    seg = sess.segmenter.predict(img, size=(w, h))
+    tm["segment"] = 1000 * (time.perf_counter() - t)
+    trees_union = seg.instance > 0
+
+    t = time.perf_counter()
+    pick = None if pick_xy is None else (pick_xy[0] * sx, pick_xy[1] * sy)
+    rope = detect_rope(img, trees_union, pick_xy=pick)
+    tm["rope"] = 1000 * (time.perf_counter() - t)
+    if not rope:
+        raise MonodbhError(f"{path}: {rope.reason}")
+    tid = _roped_instance(seg.instance, rope.center_xy)
+    if tid == 0:
+        raise MonodbhError(f"{path}: the rope at ({rope.center_xy[0] / sx:.0f}, {rope.center_xy[1] / sy:.0f}) "
+                           "is not on a segmented tree")
+    tree_mask = seg.instance == tid
+    ground = seg.semantic == 1
+
+    t = time.perf_counter()
+    depth = sess.depth.predict(img, trees_union, float(cam.K[0, 0]))
+    tm["depth"] = 1000 * (time.perf_counter() - t)
+
+    tree_out = {}
+
+    def silhouette_fn(z_axis, edges):
+        t1 = time.perf_counter()
+        center = 0.5 * (edges.left_xy + edges.right_xy)
+        R_n, G_n, box = sess.trees.predict(img, tree_mask, tuple(center), edges.width_px, float(cam.K[0, 0]))
+        zf, zb = sess.trees.to_metric(R_n, G_n, z_axis, box, float(cam.K[0, 0]))
+        P = zf.shape[0]
+        s = box[2] / P
+        M = np.array([[s, 0, box[0] + 0.5 * s], [0, s, box[1] + 0.5 * s]], np.float64)
+        z1 = cv2.warpAffine(zf.astype(np.float32), M, (w, h), flags=cv2.INTER_LINEAR)
+        z2 = cv2.warpAffine(zb.astype(np.float32), M, (w, h), flags=cv2.INTER_LINEAR)
+        inside = cv2.warpAffine(np.ones((P, P), np.float32), M, (w, h), flags=cv2.INTER_NEAREST) > 0.5
+        z1[~inside] = 0
+        z2[~inside] = 0
+        tree_out.update(z1=z1, z2=z2, box=box)
+        tm["trees"] = 1000 * (time.perf_counter() - t1)
+        return z1, z2
+
+    perc = Perception(rgb=img, camera=cam, rope_xy=np.asarray(rope.center_xy, float),
+                      rope_dir=np.asarray(rope.direction, float), rope_half_px=max(0.5, rope.thickness_px / 2),
+                      tree_mask=tree_mask, ground_mask=ground, depth=depth, depth_is_metric=False,
+                      silhouette_fn=silhouette_fn, source="network")
+    res = measure_from_perception(perc, str(path), timings=tm)
+    res.tree_id = int(tid)
+    if res.rope_xy is not None:
+        res.rope_xy = [res.rope_xy[0] / sx, res.rope_xy[1] / sy]
+    if res.error:
+        res.error = f"{path}: {res.error}"
+        return res
+    if want_cloud or want_debug:
+        t = time.perf_counter()
+        cands = res.debug.get("scale_candidates", {})
+        lam_net = cands.get("network", (None,))[0]
+        lam = float(np.linalg.norm(res.debug["axis_point"]))
+        s = lam / lam_net if lam_net else 1.0
+        res.debug["scene_cloud"] = _scene_cloud(img, depth * s, cam.K, seg.instance, tid)
+        if tree_out:
+            res.debug["tree_cloud"] = _tree_cloud(img, cam, tree_out, tree_mask, tid)
+        tm["cloud"] = 1000 * (time.perf_counter() - t)
+    if want_debug:
+        res.debug.update(image=img, image_scale=(sx, sy), rope_polyline=np.asarray(rope.polyline),
+                         tree_mask=tree_mask)
+    res.timings_ms = tm
+    res.timings_ms["total"] = sum(v for k, v in tm.items() if k != "total")
+    return res
+
+
+def _scene_cloud(img, depth, K, instance, tid, step: int = 4, max_depth_m: float = 60.0) -> PointCloud:
+    pts = unproject_depth(depth, K, step)
+    col = img[::step, ::step]
+    ids = instance[::step, ::step].astype(np.int32)
+    ok = (depth[::step, ::step] > 0) & (depth[::step, ::step] < max_depth_m)
+    # the measured tree gets its refined cloud; keep its coarse points under id 0 out
+    ok &= ids != tid
+    return PointCloud(pts[ok].astype(np.float32), col[ok].astype(np.uint8), ids[ok])
+
+
+def _tree_cloud(img, cam, tree_out, tree_mask, tid) -> PointCloud:
+    z1, z2 = tree_out["z1"], tree_out["z2"]
+    ys, xs = np.nonzero(tree_mask & (z1 > 0))
+    if len(xs) == 0:
+        return PointCloud.concat([])
+    nxy = cam.undistort_points(np.c_[xs, ys].astype(np.float64), normalized=True)
+    f = np.c_[nxy * z1[ys, xs, None], z1[ys, xs]]
+    b = np.c_[nxy * z2[ys, xs, None], z2[ys, xs]]
+    col = img[ys, xs]
+    back_col = (col * 0.6).astype(np.uint8)
+    return PointCloud(np.concatenate([f, b]).astype(np.float32), np.concatenate([col, back_col]),
+                      np.full(2 * len(xs), tid, np.int32))
+
+
+def reconstruct_photo(path: str, camera, session: Session | None = None, pick_xy=None):
+    """Measure and return ``(MeasureResult, PointCloud)``: the coarse scene cloud (metres,
+    camera frame, rescaled by the rope) plus the refined cloud of the roped tree."""
+    res = measure_photo(path, camera, pick_xy=pick_xy, want_cloud=True, session=session)
+    if res.error:
+        return res, None
+    cloud = PointCloud.concat([res.debug.get("scene_cloud"), res.debug.get("tree_cloud")])
+    return res, cloud
