@@ -139,8 +139,7 @@ def measure(
 ) -> None:
     """Measure the DBH of the roped tree in each photo.
 
-    Exit status: 0 when every photo was measured, 1 when some failed (their rows carry the
-    error; the others are still written), 2 on usage errors.
+    Exit status: 0 when every photo was measured, 1 when some failed (their rows carry the error; the others are still written), 2 on usage errors.
     """
     import sys
 
@@ -159,7 +158,7 @@ def measure(
 
     from rich.console import Console
 
-    err_console = Console(stderr=True)
+    err_console = Console(stderr=True, soft_wrap=True)
     try:
         writer = ResultWriter(json_stream=sys.stdout if as_json else None, csv_path=csv_out,
                               out_dir=out_dir, meta={"calib": str(calib), "workers": workers})

@@ -122,7 +122,7 @@ def reconstruct(
 
     from monodbh.toolkit.overlay import format_dbh
 
-    con = Console(stderr=True, highlight=False)
+    con = Console(stderr=True, highlight=False, soft_wrap=True)
     con.print(f"{output}: {len(cloud):,} points, {n_trees} tree{'s' if n_trees != 1 else ''} "
               f"({frame} frame)")
     if res.error:
