@@ -39,5 +39,13 @@ app.command("bench")(_bench)
 # --- end measuring commands --------------------------------------------------------------------
 
 
+# --- training commands (training-only extra; imports inside the commands) ---------------------
+from .train_cmd import export as _export, train as _train  # noqa: E402
+
+app.command("train")(_train)
+app.command("export")(_export)
+# --- end training commands ---------------------------------------------------------------------
+
+
 def main() -> None:
     app()

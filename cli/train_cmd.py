@@ -1,0 +1,56 @@
+"""``dbh train`` and ``dbh export`` (training-only; need the ``train`` extra)."""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import List, Optional
+
+import typer
+
+KINDS = {"segmenter": "segmenter", "depth": "cden", "trees": "treenet"}
+
+
+def train(
+    kind: str = typer.Argument(..., help="segmenter | depth | trees"),
+    out: Path = typer.Option(..., "--out", "-o", help="Run folder (config.json, checkpoint.pt, log.jsonl)."),
+    steps: int = typer.Option(20000, "--steps", min=1, help="Total optimiser steps."),
+    resume: bool = typer.Option(False, "--resume", help="Continue from OUT/checkpoint.pt."),
+    data: Optional[List[Path]] = typer.Option(None, "--data", help="dbh synth folder(s); default: render on the fly."),
+    val: Optional[List[Path]] = typer.Option(None, "--val", help="Validation folder(s) (seeds never used in training)."),
+    stop_at: Optional[int] = typer.Option(None, "--stop-at", help="Stop (checkpointed) after this many steps."),
+    size: str = typer.Option("base", "--size", help="Model size: base | tiny."),
+    batch_size: Optional[int] = typer.Option(None, "--batch-size"),
+    threads: Optional[int] = typer.Option(None, "--threads", help="CPU threads (default: all cores)."),
+) -> None:
+    """Train one of the three networks on synthetic scenes (CPU, or CUDA when present)."""
+    if kind not in KINDS:
+        raise typer.BadParameter(f"kind must be one of {', '.join(KINDS)}, got {kind!r}")
+    opts = {"size": size}
+    if batch_size:
+        opts["batch_size"] = batch_size
+    if threads:
+        opts["threads"] = threads
+    d = [str(p) for p in data] if data else None
+    v = [str(p) for p in val] if val else None
+    if kind == "segmenter":
+        from monodbh.models.training.segmenter import train_segmenter
+        res = train_segmenter(out, steps, data=d or "gen", resume=resume, val_data=v, stop_at=stop_at, **opts)
+    elif kind == "depth":
+        from monodbh.models.training.depth import train_depth
+        res = train_depth(str(out), steps, data=d, resume=resume, val_data=v, stop_at=stop_at, **opts)
+    else:
+        from monodbh.models.training.trees import train_trees
+        res = train_trees(str(out), steps, data=d, resume=resume, val_data=v, stop_at=stop_at, **opts)
+    typer.echo(f"{kind}: stopped at step {res.get('step')}; validation {res.get('val')}", err=True)
+
+
+def export(
+    run_dir: Path = typer.Argument(..., exists=True, file_okay=False, help="Training run folder."),
+    ship: bool = typer.Option(False, "--ship", help="Copy the int8 model into models/ and update the manifest."),
+    n_calib: int = typer.Option(32, "--n-calib", help="Calibration samples for int8."),
+    tolerance: float = typer.Option(0.03, "--tolerance", help="Max relative loss of the task metric for int8."),
+    val: Optional[List[Path]] = typer.Option(None, "--val", help="Evaluation folder(s)."),
+) -> None:
+    """Export a run to ONNX fp32 and int8 (onnxruntime.quantization), print fp32-vs-int8 tables."""
+    from monodbh.models.export.cli_impl import export_run
+    export_run(run_dir, ship=ship, n_calib=n_calib, tolerance=tolerance,
+               val_data=[str(p) for p in val] if val else None)
