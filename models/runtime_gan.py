@@ -20,14 +20,14 @@ Trees (:class:`TreePredictor`)
 """
 from __future__ import annotations
 
-import json
 import math
 import os
-from pathlib import Path
 from typing import Any
 
 import cv2
 import numpy as np
+
+from monodbh.models.runtime import OnnxPredictor
 
 __all__ = [
     "D_MIN", "D_MAX", "F_CANON_FRAC", "IMAGENET_MEAN", "IMAGENET_STD", "K_INFER", "MIN_CROP_PX",
@@ -209,67 +209,41 @@ def silhouette_to_metric(R_n: np.ndarray, G_n: np.ndarray, z_ref: float, side_px
     return zf.astype(np.float32), (zf + np.asarray(G_n, np.float32) * m).astype(np.float32)
 
 
-# --------------------------------------------------------------------------- sessions
+# --------------------------------------------------------------------------- predictors
 
 
-def _session(model: Any, threads: int):
-    import onnxruntime as ort
+class _GanPredictor(OnnxPredictor):
+    """:class:`~monodbh.models.runtime.OnnxPredictor` plus the spec's normalisation constants."""
 
-    if isinstance(model, ort.InferenceSession):
-        return model
-    so = ort.SessionOptions()
-    so.intra_op_num_threads = threads
-    so.inter_op_num_threads = 1
-    so.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
-    so.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
-    so.log_severity_level = 3
-    return ort.InferenceSession(str(model), so, providers=["CPUExecutionProvider"])
-
-
-def _spec_of(sess) -> dict:
-    meta = sess.get_modelmeta().custom_metadata_map or {}
-    try:
-        return json.loads(meta.get("monodbh_spec", "{}"))
-    except json.JSONDecodeError:
-        return {}
-
-
-class _GanPredictor:
-    """Session + spec holder (onnxruntime CPU session, spec from ONNX metadata)."""
-
-    def __init__(self, model: str | os.PathLike | Any, threads: int = 2):
-        self.path = None if not isinstance(model, (str, os.PathLike)) else Path(model)
-        if self.path is not None and not self.path.exists():
-            from monodbh.calib.errors import MonodbhError
-
-            raise MonodbhError(f"{self.path}: model file not found")
-        self.session = _session(model, threads)
-        self.spec = _spec_of(self.session)
+    def __init__(self, path: str | os.PathLike | None = None, threads: int = 2,
+                 manifest: dict[str, Any] | None = None) -> None:
+        super().__init__(self.kind, path, threads, manifest)
         self.extra = self.spec.get("extra", {})
         pre = (self.spec.get("preprocess") or [{}])[0]
         self.mean = np.asarray(pre.get("mean", IMAGENET_MEAN), np.float32)
         self.std = np.asarray(pre.get("std", IMAGENET_STD), np.float32)
-        self.inputs = {i.name: tuple(i.shape) for i in self.session.get_inputs()}
-        self.output_names = [o.name for o in self.session.get_outputs()]
-
-    def run(self, feeds: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-        return dict(zip(self.output_names, self.session.run(self.output_names, feeds)))
 
 
 class DepthPredictor(_GanPredictor):
-    """Metric depth from one photo with the CDEN ONNX model.
+    """Metric depth from one photo with the CDEN ONNX model (kind ``"cden"``).
 
     Parameters
     ----------
-    model : path or onnxruntime.InferenceSession
-        ``cden.onnx`` (fp32 or int8) with inputs ``image``, ``mask`` and output ``depth_code``.
+    path : path, optional
+        ONNX file (fp32 or int8, spec in its metadata); default the shipped model of the
+        manifest (``models/cden_int8.onnx``).
     threads : int
         onnxruntime intra-op threads.
+    manifest : dict, optional
+        Manifest to look the shipped model up in (default ``models/manifest.json``).
     """
 
-    def __init__(self, model: str | os.PathLike | Any, threads: int = 2):
-        super().__init__(model, threads)
-        self.size = int(self.inputs["image"][-1])
+    kind = "cden"
+
+    def __init__(self, path: str | os.PathLike | None = None, threads: int = 2,
+                 manifest: dict[str, Any] | None = None) -> None:
+        super().__init__(path, threads, manifest)
+        self.size = int(self.input_shape("image")[-1])
         dc = self.extra.get("depth_code", {})
         self.d_min = float(dc.get("d_min_m", D_MIN))
         self.d_max = float(dc.get("d_max_m", D_MAX))
@@ -319,13 +293,18 @@ class TreePredictor(_GanPredictor):
 
     Parameters
     ----------
-    model : path or onnxruntime.InferenceSession
-        ``treenet.onnx`` with input ``crop`` ``(1, 4, P, P)`` and output ``silhouette``.
+    path : path, optional
+        ONNX file with input ``crop`` ``(1, 4, P, P)`` and output ``silhouette`` (kind
+        ``"treenet"``); default the shipped ``models/treenet_int8.onnx``.
+    threads, manifest : as :class:`DepthPredictor`.
     """
 
-    def __init__(self, model: str | os.PathLike | Any, threads: int = 2):
-        super().__init__(model, threads)
-        self.size = int(self.inputs["crop"][-1])
+    kind = "treenet"
+
+    def __init__(self, path: str | os.PathLike | None = None, threads: int = 2,
+                 manifest: dict[str, Any] | None = None) -> None:
+        super().__init__(path, threads, manifest)
+        self.size = int(self.input_shape("crop")[-1])
         self.k_default = float(self.extra.get("k_infer", K_INFER))
         self.min_crop_px = float(self.extra.get("min_crop_px", MIN_CROP_PX))
 

@@ -96,3 +96,12 @@ def test_tree_predictor_tiny(tiny_models):
     zf, zb = p.to_metric(R, G, 5.0, (40.0, 20.0, 80.0), 300.0)
     np.testing.assert_allclose(zf, 5.0 * (1 + R * 80 / 300), rtol=1e-5)
     assert zf.shape == (64, 64) and zb.shape == (64, 64)
+
+
+def test_predictor_missing_file_is_user_error(tmp_path):
+    from monodbh.calib.errors import MonodbhError
+
+    with pytest.raises(MonodbhError, match="not found"):
+        DepthPredictor(tmp_path / "nope.onnx")
+    with pytest.raises(MonodbhError, match="no shipped 'treenet'"):
+        TreePredictor(manifest={"format": 1, "models": {}})

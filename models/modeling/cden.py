@@ -86,9 +86,9 @@ class CDENConfig:
     """
 
     img: int = 256
-    embed: int = 48
-    depths: tuple[int, ...] = (2, 2, 2, 2)
-    heads: tuple[int, ...] = (2, 4, 8, 16)
+    embed: int = 32
+    depths: tuple[int, ...] = (2, 2, 4, 2)
+    heads: tuple[int, ...] = (1, 2, 4, 8)
     ws: int = 8
     mlp_ratio: float = 4.0
     skips: dict = field(default_factory=lambda: {64: 256, 16: 64, 4: 16})

@@ -47,7 +47,7 @@ class TreeNetConfig:
     """U-Net widths: ``ch[i]`` channels after the i-th stride-2 down conv (len = number of downs)."""
 
     img: int = 128
-    ch: tuple[int, ...] = (24, 48, 96, 192, 256)
+    ch: tuple[int, ...] = (16, 32, 64, 128, 256)
     disc_ch: tuple[int, ...] = (32, 64, 128, 256)
 
 
@@ -79,7 +79,7 @@ class UNet(nn.Module):
     3x3 conv at full resolution on ``cat(up, input)`` features, tanh.
     """
 
-    def __init__(self, in_ch: int = 4, out_ch: int = 2, ch: tuple[int, ...] = (24, 48, 96, 192, 256),
+    def __init__(self, in_ch: int = 4, out_ch: int = 2, ch: tuple[int, ...] = (16, 32, 64, 128, 256),
                  out_scale: float = 1.0):
         super().__init__()
         self.out_scale = out_scale
