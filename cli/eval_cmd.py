@@ -220,6 +220,10 @@ def evaluate(
         jobs.append(Job(n, str(stem.with_suffix(".jpg")), cam, gt=(str(folder), i) if gt_perception else None,
                         out_dir=str(out_dir) if out_dir else None))
     backend = make_backend(measure_fn, session_factory, models_dir)
+    if gt_perception:  # ground-truth perception needs no networks: run without models too
+        import dataclasses
+
+        backend = dataclasses.replace(backend, session_optional=True)
 
     from rich.console import Console
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn

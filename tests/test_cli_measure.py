@@ -43,8 +43,8 @@ def fake_measure(path, camera, *, pick_xy=None, want_cloud=False, want_debug=Fal
                         estimates_cm={"circle": 30.1}, rope_xy=list(pick_xy or (w / 2, h / 2)), tree_id=1)
     if want_debug:
         t = np.linspace(np.pi, 2 * np.pi, 30)
-        res.debug.update(image=img[::2, ::2], image_scale=0.5, rope_polyline=[[10, 30], [50, 32], [80, 30]],
-                         edges_xy=[[20, 40], [70, 40]], slice_px=[[20, 40], [70, 40]],
+        res.debug.update(image=img[::2, ::2], image_scale=0.5, rope_polyline=[[5, 15], [25, 16], [40, 15]],
+                         edges_xy=[[10, 20], [35, 20]], slice_px=[[10, 20], [35, 20]],
                          slice_xy=np.c_[0.15 * np.cos(t), 3 + 0.15 * np.sin(t)], circle=(0, 3, 0.15))
     if want_cloud:
         res.debug["tree_cloud"] = PointCloud(np.ones((5, 3), np.float32), np.zeros((5, 3), np.uint8),

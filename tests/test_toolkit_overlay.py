@@ -8,9 +8,11 @@ from monodbh.toolkit.result import MeasureResult
 
 def _result(**debug):
     t = np.linspace(np.pi, 2 * np.pi, 40)
-    dbg = dict(rope_polyline=np.array([[100, 300], [200, 310], [300, 300]], float), edges_xy=[[100, 320], [300, 320]],
-               slice_px=[[100, 320], [300, 320]], slice_xy=np.c_[0.16 * np.cos(t), 3 + 0.16 * np.sin(t)],
-               circle=(0.0, 3.0, 0.16), circles={"ellipse": (0.0, 3.0, 0.17)})
+    mask = np.zeros((240, 320), bool)
+    mask[:, 50:150] = True
+    dbg = dict(rope_polyline=np.array([[50, 150], [100, 155], [150, 150]], float), edges_xy=[[50, 160], [150, 160]],
+               slice_px=[[50, 160], [150, 160]], slice_uv=np.c_[0.16 * np.cos(t), 3 + 0.16 * np.sin(t)],
+               circle=(0.0, 3.0, 0.16), circles={"ellipse": (0.0, 3.0, 0.17)}, tree_mask=mask)
     dbg.update(debug)
     return MeasureResult(photo="x.jpg", dbh_cm=31.4, dbh_sigma_cm=1.2, distance_m=3.0, scale_source="rope",
                          flags=["short_arc"], rope_xy=[200.0, 305.0], debug=dbg)
@@ -18,7 +20,7 @@ def _result(**debug):
 
 def test_overlay_png_size_and_drawing(tmp_path):
     img = np.full((240, 320, 3), 60, np.uint8)
-    p = write_overlay(tmp_path / "o" / "t_overlay.png", _result(image=img, image_scale=0.5))
+    p = write_overlay(tmp_path / "o" / "t_overlay.png", _result(image=img, image_scale=(0.5, 0.5)))
     with Image.open(p) as im:
         assert im.size == (320, 240) and im.mode == "RGB"
         a = np.asarray(im)

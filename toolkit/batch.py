@@ -100,10 +100,14 @@ class Backend:
         no session (``session=None`` is passed).
     models_dir : str or None
         Passed to the session factory.
+    session_optional : bool
+        When the session cannot be created (e.g. no shipped models), pass ``session=None``
+        instead of failing (``dbh eval --gt-perception`` needs no networks).
     """
     measure: str = DEFAULT_MEASURE
     session: Optional[str] = DEFAULT_SESSION
     models_dir: Optional[str] = None
+    session_optional: bool = False
 
     def function(self) -> Callable[..., Any]:
         fn = load_object(self.measure)
@@ -121,13 +125,19 @@ class Backend:
         """
         if not self.session:
             return None
-        factory = load_object(self.session)
         try:
-            return factory(models_dir=self.models_dir)
+            factory = load_object(self.session)
+            try:
+                return factory(models_dir=self.models_dir)
+            except MonodbhError:
+                raise
+            except Exception as exc:
+                raise BatchError(f"cannot create the session ({type(exc).__name__}: "
+                                 f"{one_line(exc)})") from None
         except MonodbhError:
+            if self.session_optional:
+                return None
             raise
-        except Exception as exc:
-            raise BatchError(f"cannot create the session ({type(exc).__name__}: {one_line(exc)})") from None
 
 
 @dataclass
@@ -245,6 +255,7 @@ def run_job(job: Job, measure: Callable[..., Any], session: Any = None, *,
             from monodbh.models.synthetic.io import read_sample
 
             kw["gt"] = read_sample(job.gt[0], int(job.gt[1]))
+            t0 = time.perf_counter()  # time the measurement, not the ground-truth reading
         res = normalise_result(measure(job.photo, job.camera, **kw), job.photo)
     except (KeyboardInterrupt, SystemExit):
         raise

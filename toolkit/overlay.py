@@ -5,33 +5,40 @@ simply not drawn. Keys the pipeline fills (contract between ``toolkit.pipeline``
 module):
 
 ``image``
-    (H, W, 3) uint8 RGB photo, possibly downscaled. When absent the photo is read from
-    ``result.photo``.
+    (H, W, 3) uint8 RGB picture the pipeline worked on (possibly downscaled and undistorted).
+    When absent the photo is read from ``result.photo``.
 ``image_scale``
-    float, pixels of ``image`` per pixel of the full-size photo (default 1.0, or the actual
-    ratio when the photo is re-read). All ``*_xy`` / ``*_px`` pixel coordinates below are in
-    **full-size photo pixels** (OpenCV pixel-centre convention) and are scaled here.
+    float or ``(sx, sy)``: pixels of ``image`` per pixel of the photo (default 1.0). Used only to
+    place ``result.rope_xy``, which is in photo pixels.
+
+All pixel coordinates below are in **pixels of** ``image`` (the photo's pixels when there is
+no ``image``), OpenCV pixel-centre convention:
+
 ``rope_polyline``
-    (N, 2) float, the detected rope as a polyline (x, y) in pixels.
+    (N, 2) float, the detected rope as a polyline (x, y).
+``rope_xy``
+    (2,) float, the rope centre (a cross; default ``result.rope_xy`` scaled by ``image_scale``).
 ``edges_xy``
-    (2, 2) float, the left and right trunk edge points ``[[xl, yl], [xr, yr]]`` at the slice,
-    or (2, K, 2): the left and right edge polylines.
+    (2, 2) float, the left and right trunk edge points ``[[xl, yl], [xr, yr]]`` at the slice
+    (joined by the slice line), or (2, K, 2): the left and right edge polylines.
 ``slice_px``
-    (M, 2) float, pixels of the breast-height slice (drawn as small dots), or (2, 2) the two
-    ends of the slice line.
-``slice_xy``
+    (M, 2) float, pixels of the breast-height slice (small dots), or (2, 2) the two ends of the
+    slice line.
+``tree_mask``
+    (H, W) bool, the measured tree's pixels (outlined).
+``slice_xy`` (alias ``slice_uv``)
     (M, 2) float metres, the slice's 3D points in the stem cross-section plane:
-    column 0 across the view (to the right), column 1 along the view (away from the camera).
+    column 0 across the view, column 1 along the view (away from the camera).
     Drawn in the inset with the camera at the bottom.
 ``circle``
     (3,) float metres, the fitted circle ``(cx, cy, r)`` in the same plane as ``slice_xy``.
 ``circles``
-    optional dict name -> (cx, cy, r), other estimators' circles (thin lines in the inset).
+    optional dict name -> (cx, cy, r), other estimators' circles (thin grey lines in the inset).
 ``tree_cloud``
     :class:`~monodbh.toolkit.result.PointCloud` of the measured tree (written as a PLY by
     ``dbh measure --out-dir``; not drawn).
 
-Also drawn: ``result.rope_xy`` (a cross), the text ``DBH 31.4 ± 1.2 cm``, the distance, the
+Also drawn: the text ``DBH 31.4 ± 1.2 cm``, the distance, the
 scale source, the flags, or the error in red.
 """
 from __future__ import annotations
@@ -56,6 +63,7 @@ _SLICE = (255, 230, 0)
 _CIRCLE = (60, 255, 60)
 _WHITE = (255, 255, 255)
 _ERROR = (255, 70, 70)
+_MASK = (120, 200, 255)
 
 
 def format_dbh(dbh_cm: Optional[float], sigma_cm: Optional[float], unicode: bool = True) -> str:
@@ -89,62 +97,88 @@ def _arr(debug: dict, key: str, ndim_last: int = 2) -> Optional[np.ndarray]:
     return a
 
 
-def _base_image(result: MeasureResult, image: Optional[np.ndarray]) -> tuple[np.ndarray, float]:
-    """RGB image (H, W, 3) uint8 and its scale relative to the full-size photo."""
+def _base_image(result: MeasureResult, image: Optional[np.ndarray]
+                ) -> tuple[np.ndarray, float, tuple[float, float]]:
+    """RGB image (H, W, 3) uint8, the factor applied to it here (downscaling) and its
+    ``(sx, sy)`` scale relative to the photo."""
     dbg = result.debug or {}
-    scale = float(dbg.get("image_scale", 1.0) or 1.0)
+    sc = dbg.get("image_scale", 1.0)
+    try:
+        sx, sy = (float(sc), float(sc)) if np.ndim(sc) == 0 else (float(sc[0]), float(sc[1]))
+    except (TypeError, ValueError, IndexError):
+        sx = sy = 1.0
     if image is None:
         image = dbg.get("image")
     if image is None:
         from monodbh.calib.photo import load_photo
 
         image = load_photo(result.photo)
-        scale = 1.0
+        sx = sy = 1.0
     image = np.asarray(image)
     if image.ndim == 2:
         image = np.repeat(image[..., None], 3, axis=2)
     image = np.ascontiguousarray(image[..., :3]).astype(np.uint8)
     h, w = image.shape[:2]
+    f = 1.0
     if max(h, w) > OVERLAY_MAX_SIDE:
         import cv2
 
         f = OVERLAY_MAX_SIDE / max(h, w)
         image = cv2.resize(image, (max(1, round(w * f)), max(1, round(h * f))),
                            interpolation=cv2.INTER_AREA)
-        scale *= image.shape[1] / w
-    return image, scale
+    return image, f, (sx, sy)
 
 
-def _to_img(xy: np.ndarray, s: float) -> np.ndarray:
-    """Full-size pixel coordinates -> overlay pixels (pixel-centre convention), int32 * 16."""
-    return np.rint((s * (xy + 0.5) - 0.5) * 16).astype(np.int32)
+def _to_img(xy: np.ndarray, s) -> np.ndarray:
+    """Pixel coordinates scaled by ``s`` (pixel-centre convention) as int32 * 16 (4 bits)."""
+    return np.rint((np.asarray(s) * (xy + 0.5) - 0.5) * 16).astype(np.int32)
 
 
-def _draw_geometry(img: np.ndarray, dbg: dict, result: MeasureResult, s: float, lw: int) -> None:
+def _pt(p) -> tuple[int, int]:
+    return int(p[0]), int(p[1])
+
+
+def _draw_geometry(img: np.ndarray, dbg: dict, result: MeasureResult, f: float,
+                   photo_scale: tuple[float, float], lw: int) -> None:
     import cv2
 
     aa, sh = cv2.LINE_AA, 4  # 4 fractional bits
+    mask = dbg.get("tree_mask")
+    if mask is not None and np.ndim(mask) == 2 and np.any(mask):
+        m = np.asarray(mask).astype(np.uint8)
+        if m.shape[:2] != img.shape[:2]:
+            m = cv2.resize(m, (img.shape[1], img.shape[0]), interpolation=cv2.INTER_NEAREST)
+        contours, _ = cv2.findContours(m, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
+        cv2.drawContours(img, contours, -1, _MASK, max(1, lw // 2), aa)
     rope = _arr(dbg, "rope_polyline")
     if rope is not None and rope.ndim == 2 and len(rope) >= 2:
-        cv2.polylines(img, [_to_img(rope, s)], False, _ROPE, lw + 1, aa, sh)
+        cv2.polylines(img, [_to_img(rope, f)], False, _ROPE, lw + 1, aa, sh)
     edges = _arr(dbg, "edges_xy")
     if edges is not None:
         if edges.shape == (2, 2):
-            for p in _to_img(edges, s):
-                cv2.circle(img, tuple(int(v) for v in p), 5 * lw * 16, _EDGE, lw, aa, sh)
-            cv2.line(img, *(tuple(int(v) for v in p) for p in _to_img(edges, s)), _EDGE, max(1, lw // 2), aa, sh)
+            ends = _to_img(edges, f)
+            cv2.line(img, _pt(ends[0]), _pt(ends[1]), _SLICE, lw, aa, sh)
+            for p in ends:
+                cv2.circle(img, _pt(p), 5 * lw * 16, _EDGE, lw, aa, sh)
         elif edges.ndim == 3 and edges.shape[0] == 2:
-            cv2.polylines(img, list(_to_img(edges, s)), False, _EDGE, lw, aa, sh)
+            cv2.polylines(img, list(_to_img(edges, f)), False, _EDGE, lw, aa, sh)
     sl = _arr(dbg, "slice_px")
     if sl is not None and sl.ndim == 2:
         if len(sl) == 2:
-            cv2.line(img, *(tuple(int(v) for v in p) for p in _to_img(sl, s)), _SLICE, lw, aa, sh)
+            ends = _to_img(sl, f)
+            cv2.line(img, _pt(ends[0]), _pt(ends[1]), _SLICE, lw, aa, sh)
         else:
             step = max(1, len(sl) // 2000)
-            for p in _to_img(sl[::step], s):
-                cv2.circle(img, tuple(int(v) for v in p), max(1, lw // 2) * 16, _SLICE, -1, aa, sh)
-    if result.rope_xy is not None and len(result.rope_xy) == 2:
-        p = _to_img(np.asarray(result.rope_xy, np.float64), s)
+            for p in _to_img(sl[::step], f):
+                cv2.circle(img, _pt(p), max(1, lw // 2) * 16, _SLICE, -1, aa, sh)
+    rxy = _arr(dbg, "rope_xy")
+    if rxy is not None and rxy.shape == (2,):
+        p = _to_img(rxy, f)
+    elif result.rope_xy is not None and len(result.rope_xy) == 2:
+        p = _to_img(np.asarray(result.rope_xy, np.float64), (f * photo_scale[0], f * photo_scale[1]))
+    else:
+        p = None
+    if p is not None:
         d = 8 * lw * 16
         x, y = int(p[0]), int(p[1])
         cv2.line(img, (x - d, y - d), (x + d, y + d), _WHITE, lw, aa, sh)
@@ -156,6 +190,8 @@ def _inset(dbg: dict, size: int) -> Optional[np.ndarray]:
     import cv2
 
     pts = _arr(dbg, "slice_xy")
+    if pts is None:
+        pts = _arr(dbg, "slice_uv")
     circ = _arr(dbg, "circle", 3)
     others = {k: np.asarray(v, np.float64) for k, v in (dbg.get("circles") or {}).items()
               if np.asarray(v).shape == (3,) and np.all(np.isfinite(v))}
@@ -193,8 +229,9 @@ def _inset(dbg: dict, size: int) -> Optional[np.ndarray]:
     cv2.line(panel, (x0, y0), (x0 + int(round(bar * k)), y0), _WHITE, 2)
     cv2.putText(panel, f"{bar * 100:.0f} cm", (x0, y0 - 6), cv2.FONT_HERSHEY_SIMPLEX, 0.4,
                 _WHITE, 1, aa)
-    cv2.putText(panel, "camera", (size - 62, size - 8), cv2.FONT_HERSHEY_SIMPLEX, 0.4,
-                (180, 180, 180), 1, aa)
+    if size >= 220:
+        cv2.putText(panel, "camera", (size - 62, size - 8), cv2.FONT_HERSHEY_SIMPLEX, 0.4,
+                    (180, 180, 180), 1, aa)
     cv2.rectangle(panel, (0, 0), (size - 1, size - 1), _WHITE, 1)
     return panel
 
@@ -226,7 +263,7 @@ def render_overlay(result: MeasureResult, image: Optional[np.ndarray] = None) ->
         With ``debug`` keys as documented in this module (all optional).
     image : (H, W, 3) uint8, optional
         RGB picture to draw on; default ``result.debug['image']`` or the photo file itself.
-        Pixel coordinates are scaled by ``debug['image_scale']``.
+        Debug pixel coordinates must be in this image's pixels.
 
     Returns
     -------
@@ -237,11 +274,11 @@ def render_overlay(result: MeasureResult, image: Optional[np.ndarray] = None) ->
     from PIL import Image, ImageDraw
 
     dbg = result.debug or {}
-    base, s = _base_image(result, image)
+    base, f, photo_scale = _base_image(result, image)
     img = base.copy()
     h, w = img.shape[:2]
     lw = max(1, round(max(h, w) / 800))
-    _draw_geometry(img, dbg, result, s, lw)
+    _draw_geometry(img, dbg, result, f, photo_scale, lw)
 
     inset_size = max(96, min(h, w) // 3)
     panel = _inset(dbg, inset_size) if min(h, w) >= 128 else None
