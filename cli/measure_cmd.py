@@ -145,7 +145,7 @@ def measure(
 
     pick_xy = parse_pick(pick)
     from monodbh.calib import MonodbhError
-    from monodbh.toolkit.batch import Job, ResultWriter, expand_photos, iter_results, unique_stems
+    from monodbh.toolkit.batch import Job, ResultWriter, expand_photos, unique_stems
 
     camera = load_calib(calib)
     paths = expand_photos(photos)

@@ -9,7 +9,7 @@ from typing import Optional
 
 import typer
 
-from .measure_cmd import fail, load_calib, make_backend, measure_fn_option, session_factory_option
+from .measure_cmd import fail, load_calib, make_backend, measure_fn_option, parse_pick, session_factory_option
 
 __all__ = ["reconstruct", "FRAMES", "to_frame"]
 
@@ -60,6 +60,8 @@ def reconstruct(
                                 show_default=False),
     frame: str = typer.Option("camera", "--frame", help="Coordinates: camera (x right, y down, "
                               "z forward), level (z up, y forward) or world (pose in --calib)."),
+    pick: Optional[str] = typer.Option(None, "--pick", metavar="X,Y", help="Pixel on the roped tree "
+                                       "(when several trees carry a rope).", show_default=False),
     as_json: bool = typer.Option(False, "--json", help="Print the measurement as one JSON line."),
     models_dir: Optional[Path] = typer.Option(None, "--models-dir", help="Folder of the ONNX models.",
                                               show_default=False),
@@ -74,6 +76,7 @@ def reconstruct(
     import json
 
     _check_output(output)
+    pick_xy = parse_pick(pick)
     if frame not in FRAMES:
         raise typer.BadParameter(f"expected one of {', '.join(FRAMES)}, got {frame!r}", param_hint="--frame")
     camera = load_calib(calib)
@@ -91,7 +94,7 @@ def reconstruct(
     try:
         fn = backend.function()
         session = backend.new_session()
-        out = fn(photo, camera, session=session)
+        out = fn(photo, camera, session=session, **({"pick_xy": pick_xy} if pick_xy else {}))
     except MonodbhError as exc:
         raise fail(str(exc))
     except Exception as exc:  # no traceback for the user; the message names the exception

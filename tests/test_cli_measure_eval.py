@@ -35,7 +35,8 @@ def fake_eval_measure(path, camera, *, pick_xy=None, want_cloud=False, want_debu
                          scale_source="rope", timings_ms={"segment": 10.0 + meta["seed"], "fit": 1.0})
 
 
-def fake_reconstruct(path, camera, session=None):
+def fake_reconstruct(path, camera, session=None, pick_xy=None):
+    assert pick_xy in (None, (5.0, 6.0))
     if "norope" in path:
         raise MonodbhError(f"{path}: no red rope found")
     xyz = np.array([[0, 0, 5], [1, -1, 6], [0.2, 0.5, 4.5]], np.float32)
@@ -108,7 +109,7 @@ def test_reconstruct_ply_las_and_errors(tmp_path):
         assert np.allclose(c.xyz[1], [1, -1, 6], atol=1e-3)
         assert "3 points" in r.stderr and "2 trees" in r.stderr
     r = CliRunner().invoke(app, ["reconstruct", str(photo), "--calib", str(cam), "-o", str(tmp_path / "l.ply"),
-                                 "--frame", "level", *fn])
+                                 "--frame", "level", "--pick", "5,6", *fn])
     assert r.exit_code == 0 and np.allclose(read_cloud(tmp_path / "l.ply").xyz[1], [1, 6, 1])
     r = CliRunner().invoke(app, ["reconstruct", str(photo), "--calib", str(cam), "-o", str(tmp_path / "s.xyz"), *fn])
     assert r.exit_code == 2 and "extension" in r.output

@@ -55,6 +55,9 @@ def test_iter_results_serial_order_and_fatal(tmp_path):
         list(iter_results(jobs, Backend(measure="nope_mod_q:f", session=None)))
     with pytest.raises(BatchError):
         load_object("no-colon")
+    assert Backend(session="nope_mod_q:Session", session_optional=True).new_session() is None
+    with pytest.raises(BatchError):
+        Backend(session="nope_mod_q:Session").new_session()
 
 
 def test_writer_csv_incremental_and_atomic_summary(tmp_path):
