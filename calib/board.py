@@ -3,7 +3,7 @@
 Detection runs on a copy downscaled to at most ``max_side`` (1000) pixels (then on one twice that
 size if nothing is found), and the corners are refined with ``cv2.cornerSubPix`` on the
 full-resolution image, with a window of about 0.3 times the smallest corner spacing (at most
-61 x 61 pixels) unless a fixed window is asked for. Chessboards use
+61 x 61 pixels) unless a fixed window is asked for (ChArUco: see :func:`detect_board`). Chessboards use
 ``cv2.findChessboardCornersSB`` (``detector="sb"``), with ``cv2.findChessboardCorners`` as the
 fallback (``"auto"``) or alone (``"classic"``); ChArUco boards use ``cv2.aruco.CharucoDetector``.
 """
@@ -265,7 +265,8 @@ def detect_board(gray: np.ndarray, board: Board, *, detector: str = "auto",
     subpix_win : int, optional
         Half-size of the ``cornerSubPix`` window (OpenCV's ``winSize``, the window is
         ``2 * subpix_win + 1`` pixels wide); ``0`` skips the refinement; default adapts to the
-        corner spacing (0.3 times the smallest spacing, 2 to 30).
+        corner spacing (chessboard: 0.3 times the smallest spacing, 2 to 30; ChArUco: only
+        when detected on a downscaled copy, with a window clear of the markers).
     subpix_iters, subpix_eps : int, float, optional
         ``cornerSubPix`` termination criteria (``COUNT + EPS``).
 
@@ -310,10 +311,16 @@ def detect_board(gray: np.ndarray, board: Board, *, detector: str = "auto",
     pts[:, 0] = (pts[:, 0] + 0.5) * sx - 0.5
     pts[:, 1] = (pts[:, 1] + 0.5) * sy - 0.5
     pts = pts.astype(np.float32)
-    if subpix_win is None:
-        win = int(np.clip(round(0.3 * _min_spacing(pts)), 2, 30))
-    else:
+    if subpix_win is not None:
         win = int(subpix_win)
+    elif board.charuco:
+        # CharucoDetector already refines its corners; the markers sit (1 - marker/square) / 2
+        # of a square from each corner and would bias a wide window, so refine downscaled
+        # detections only, with a window that stays clear of the markers.
+        frac = 0.8 * 0.5 * (1.0 - board.marker_m / board.square_m)
+        win = 0 if max(sx, sy) <= 1.0 else int(np.clip(round(frac * _min_spacing(pts)), 2, 30))
+    else:
+        win = int(np.clip(round(0.3 * _min_spacing(pts)), 2, 30))
     if win > 0:
         crit = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, int(subpix_iters),
                 float(subpix_eps))
