@@ -9,7 +9,6 @@ like ROS ``camera_calibration``.
 """
 from __future__ import annotations
 
-import math
 import os
 import time
 from concurrent.futures import ThreadPoolExecutor, as_completed
@@ -21,8 +20,8 @@ import numpy as np
 
 from .board import DETECTORS, Board, Detection, detect_board
 from .camera import CalibrationInfo, Camera
-from .coverage import CoverageScore, coverage_advice, coverage_scores, view_parameters
-from .errors import CalibrationError, PhotoError
+from .coverage import coverage_advice, coverage_scores, view_parameters
+from .errors import CalibrationError
 from .photo import load_photo, read_image_size
 
 __all__ = ["calibrate", "detect_views", "calibrate_views", "CalibrationResult", "ViewResult",

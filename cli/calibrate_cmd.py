@@ -109,7 +109,9 @@ def _report(con, res, elapsed: float, output: Optional[Path], fmt: str) -> None:
     dist = "  ".join(f"{n} {_fmt_std(d, sd.get(n), 5)}" for n, d in zip(names, cam.dist))
     con.print(f"  distortion: {dist}")
     cov = "  ".join(f"{c.name} {c.progress:.0%}" for c in res.coverage)
-    con.print(f"coverage (ROS camera_calibration scores): {cov}")
+    good = all(c.progress >= 1.0 for c in res.coverage)
+    con.print(f"coverage (ROS camera_calibration scores): {cov}"
+              + ("  [green]good[/]" if good else ""))
     if res.advice:
         con.print("[yellow]advice:[/]")
         for tip in res.advice:

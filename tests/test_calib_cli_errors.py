@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from monodbh.calib import Camera, save_camera
+from monodbh.calib import Camera
 from monodbh.cli.main import app
 
 BOARD = ["--board", "9x6", "--square", "0.025"]

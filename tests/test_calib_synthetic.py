@@ -157,7 +157,7 @@ def test_outlier_view_is_rejected(chessboard_views):
     assert abs(res.camera.fx / K_TRUE[0, 0] - 1) < 0.003
 
 
-def test_synthetic_charuco(grid):
+def test_synthetic_charuco(grid, tmp_path):
     rng = np.random.default_rng(11)
     board = Board(7, 5, 0.04, charuco=True, marker_m=0.03, dictionary="DICT_5X5_100")
     tex = _charuco_texture(board)
@@ -167,6 +167,16 @@ def test_synthetic_charuco(grid):
     assert len(res.used) >= 6
     assert abs(res.camera.fx / K_TRUE[0, 0] - 1) < 0.01
     assert np.hypot(*(res.camera.K[:2, 2] - K_TRUE[:2, 2])) < 4.0
+    # The same through the command line.
+    files = []
+    for k, im in enumerate(images):
+        files.append(str(tmp_path / f"charuco{k}.png"))
+        cv2.imwrite(files[-1], im)
+    r = CliRunner().invoke(app, ["calibrate", *files, "--charuco", "--board", "7x5", "--square",
+                                 "0.04", "--marker", "0.03", "--dict", "DICT_5X5_100", "-o",
+                                 str(tmp_path / "cam.yaml")])
+    assert r.exit_code == 0, r.stderr
+    assert abs(load_camera(tmp_path / "cam.yaml").fx / K_TRUE[0, 0] - 1) < 0.01
 
 
 @pytest.mark.parametrize("rotate", [False, True], ids=["landscape", "portrait"])
