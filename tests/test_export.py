@@ -91,13 +91,15 @@ def test_export_run_writes_report_and_ships(tmp_path):
     train_segmenter(run, steps=1, data=data, size="tiny", batch_size=1, val_data=data, n_val=1,
                     verbose=False, threads=2)
     models = tmp_path / "models"
-    rep = export_run(run, ship=True, n_calib=2, tolerance=1e6, n_runs=2, models_dir=models,
+    rep = export_run(run, ship=True, n_calib=2, tolerance=1e6, max_rel_l2=1e6, n_runs=2,
+                     models_dir=models,
                      recipes=[QuantRecipe("dyn", mode="dynamic")], data=data, val_data=data,
                      verbose=False)
     assert (run / "export" / "segmenter_fp32.onnx").exists()
     assert (run / "export" / "segmenter_int8.onnx").exists()
     saved = json.loads((run / "export" / "report.json").read_text())
     assert saved["int8"]["recipe"] == "dyn" and "roped_iou" in saved["fp32"]["metrics"]
+    assert rep["int8"]["latency_ms"] > 0 and "table" in rep["quantization"]
     man = json.loads((models / "manifest.json").read_text())
     e = man["models"]["segmenter"]
     assert (models / e["file"]).exists() and len(e["sha256"]) == 64
@@ -105,3 +107,12 @@ def test_export_run_writes_report_and_ships(tmp_path):
     assert e["classes"][3] == "tree" and e["training"]["steps"] == 1
     assert set(e["validation"]) == {"fp32", "int8"} and e["latency_ms"]["int8"] > 0
     assert e["preprocess"][0]["mean"] == pytest.approx([0.485, 0.456, 0.406])
+    # an impossible tolerance: nothing shipped, user error, report still written
+    from monodbh.models.runtime import MonodbhError
+
+    with pytest.raises(MonodbhError, match="nothing shipped"):
+        export_run(run, ship=True, n_calib=2, tolerance=-1.0, n_runs=2, models_dir=tmp_path / "m2",
+                   recipes=[QuantRecipe("dyn", mode="dynamic")], data=data, val_data=data,
+                   verbose=False)
+    assert not (tmp_path / "m2" / "manifest.json").exists()
+    assert json.loads((run / "export" / "report.json").read_text())["int8"] is None

@@ -107,7 +107,7 @@ def export_run(run_dir: str | os.PathLike, ship: bool = False, n_calib: int = 32
                tolerance: float = 0.03, *, n_eval: int | None = None,
                recipes: Sequence[QuantRecipe] | None = None, n_runs: int = 20,
                threads: int = 2, models_dir: str | os.PathLike | None = None,
-               data: Any = None, val_data: Any = None,
+               data: Any = None, val_data: Any = None, max_rel_l2: float | None = None,
                verbose: bool = True) -> dict[str, Any]:
     """Export a training run: fp32 ONNX (checked against torch), int8 search, report, ship.
 
@@ -128,6 +128,9 @@ def export_run(run_dir: str | os.PathLike, ship: bool = False, n_calib: int = 32
         Default :data:`~monodbh.models.export.quantize.DEFAULT_RECIPES`.
     models_dir : path, optional
         Ship destination (default: the installed ``monodbh/models`` folder).
+    max_rel_l2 : float, optional
+        Also require the int8 outputs' relative L2 error to stay below this (always applied,
+        at 0.05, when the fp32 task metric is ~0, i.e. an untrained model).
     data, val_data : optional
         Override the calibration / evaluation data (anything ``training.common.make_source``
         accepts); default: rebuilt from the run's config.json, else the kind's default.
@@ -168,7 +171,8 @@ def export_run(run_dir: str | os.PathLike, ship: bool = False, n_calib: int = 32
         return evaluate_kind(kind, predict, n_eval, seed + 303, spec, val_src)
 
     res = search_int8(fp32_path, int8_path, calib, eval_feeds, spec, metric_fn=metric_fn,
-                      recipes=recipes or DEFAULT_RECIPES, tolerance=tolerance, n_runs=n_runs,
+                      recipes=recipes or DEFAULT_RECIPES, tolerance=tolerance,
+                      max_rel_l2=max_rel_l2, n_runs=n_runs,
                       threads=threads, verbose=verbose)
     rows = {r["model"]: r for r in res["rows"]}
     fp32_row = rows.get("fp32")
