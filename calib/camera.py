@@ -261,7 +261,7 @@ class Camera:
     calibration images.
     """
 
-    __slots__ = ("_K", "_dist", "_size", "pose", "name", "info")
+    __slots__ = ("_K", "_dist", "_size", "_pose", "_name", "_info")
 
     def __init__(self, K: Any, dist: Any = None, image_size: Sequence[int] | None = None, *,
                  pose: Optional[CameraPose] = None, name: str = "camera",
@@ -291,9 +291,9 @@ class Camera:
         self._K = _readonly(K)
         self._dist = _readonly(dist)
         self._size = (w, h)
-        self.pose = pose
-        self.name = str(name)
-        self.info = info
+        self._pose = pose
+        self._name = str(name)
+        self._info = info
 
     # -- basic accessors -------------------------------------------------------------------
     @property
@@ -305,6 +305,21 @@ class Camera:
     def dist(self) -> np.ndarray:
         """(n,) float64 OpenCV distortion coefficients (read-only)."""
         return self._dist
+
+    @property
+    def pose(self) -> Optional[CameraPose]:
+        """Pose over level ground, or None (measurement then works without it)."""
+        return self._pose
+
+    @property
+    def name(self) -> str:
+        """Camera name (ROS ``camera_name``)."""
+        return self._name
+
+    @property
+    def info(self) -> Optional[CalibrationInfo]:
+        """Calibration bookkeeping (OpenCV file keys), or None."""
+        return self._info
 
     @property
     def image_size(self) -> tuple[int, int]:

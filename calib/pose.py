@@ -165,6 +165,9 @@ def estimate_ground_pose(image: Any, camera: Camera, board: Board, *,
     # Angle between the board normal and the line of sight to the board origin.
     cos_view = abs(float(R_cb[:, 2] @ tvec.ravel())) / max(float(np.linalg.norm(tvec)), 1e-12)
     view_angle = math.degrees(math.acos(min(1.0, cos_view)))
+    if abs(pose.roll_deg) > 45.0:
+        warnings.append(f"roll {pose.roll_deg:+.0f} deg: is the board really lying on the ground "
+                        f"(not held up), and the photo upright?")
     if view_angle > 75.0:
         warnings.append(f"board seen at a grazing angle ({view_angle:.0f} deg): pitch and height "
                         f"are uncertain; photograph it from higher up or closer")
