@@ -1,27 +1,34 @@
 """Classical detection of the red measuring rope tied around a stem at breast height.
 
 The rope is a thin, red, roughly horizontal band (an ellipse arc of a ring seen from slightly
-above or below) that crosses a trunk from edge to edge. Detection, all without a learned model:
+above or below) that crosses a trunk from edge to edge. Detection, without a learned model:
 
-1. **Red-ness** ``F = (R - max(G, B)) / (R + G + B + 30)`` - a chromaticity, so shading and exposure
-   scale it little; computed on a copy downscaled to ``work_long_side`` pixels.
-2. **Thin-line contrast** at three pyramid levels: after an anisotropic blur (along x), the
-   red-ness of a pixel minus the larger of the red-ness ``d`` pixels above and below
-   (``min(F(y) - F(y-d), F(y) - F(y+d))``). It is in red-ness units at every scale, is zero on
-   the edges of red blobs and on uniformly reddish bark, and answers to bands up to ~60 deg from
-   horizontal, so vertical paint marks and hanging rope ends give little.
-3. **Segments**: connected components of the contrast map, described by moments (centre, axis
-   angle, length, thickness = area / length); collinear pieces (a rope with a branch or a thin
-   tree in front of it, or a knot) are merged when one extrapolates into the other.
-4. **Candidates** are scored by contrast, length, continuity, band shape (thin relative to its
-   length), hue (rope red rather than orange tape) and, with a ``tree_mask``, by how much of the
-   trunk width they span. The best one is refined at full resolution in a small window.
+1. **Red-ness** ``F = max(0, R - max(G, B) - max(G - B, 0) / 2) / (R + G + B + 30)``: a chromaticity, so
+   shading and exposure change it little; the ``G - B`` term lowers orange (sandy ground,
+   flagging tape). Computed on a copy downscaled to ``work_long_side`` pixels and two pyramid
+   levels below it (thick ropes).
+2. **Thin-line contrast** (:func:`line_contrast`): after a blur along x, the red-ness of a pixel
+   minus the larger of the red-ness ``d`` pixels above and below it. It is in red-ness units at
+   every scale, is zero on the edges of red blobs and on evenly reddish bark, and answers to bands
+   up to ~60 deg from horizontal, so vertical paint marks and hanging rope ends give little.
+3. **Pieces and bands**: connected components of the contrast map described by moments;
+   pieces that extrapolate into each other (a rope behind a branch or a thin stem, a knot) are
+   linked end to end; runs of linked pieces are fitted with a quadratic centre line.
+4. **Score** (log-linear, :data:`SCORE_WEIGHTS`): contrast, length, continuity, thinness relative
+   to length, red (not orange) hue, fit residual, sparse red clutter on the trunk face around the
+   band, and whether both band ends sit on a vertical intensity edge (the trunk silhouette) that
+   holds above and below the band. With a ``tree_mask`` bands that lie on the mask and span the
+   trunk's width are preferred.
+5. The best candidate is refined at full resolution in a small window (mask, centre line,
+   thickness as the full width at half maximum of the red-ness profile).
 
 Examples
 --------
->>> det = detect_rope(rgb)                         # doctest: +SKIP
->>> if det: print(det.center_xy, det.thickness_px)  # doctest: +SKIP
-... else: print(det.reason)
+>>> det = detect_rope(rgb)                          # doctest: +SKIP
+>>> if det:                                         # doctest: +SKIP
+...     print(det.center_xy, det.thickness_px)
+... else:
+...     print(det.reason)
 """
 from __future__ import annotations
 
@@ -32,35 +39,43 @@ from typing import Callable
 import cv2
 import numpy as np
 
-__all__ = ["RopeDetection", "RopeCandidate", "detect_rope", "redness_map", "line_contrast"]
+__all__ = ["RopeDetection", "RopeCandidate", "detect_rope", "redness_map", "line_contrast", "SCORE_WEIGHTS"]
 
 
 @dataclass
 class RopeCandidate:
-    """One scored rope hypothesis (full-resolution pixel coordinates).
+    """One scored rope hypothesis (full-resolution pixel coordinates once returned).
 
     Attributes
     ----------
     center_xy : (x, y) middle of the band.
-    direction : unit (dx, dy) of the band, dx >= 0.
+    direction : unit (dx, dy) of the band at its middle, dx >= 0.
     length_px, thickness_px : band extent along and across.
     score : higher is more rope-like (comparable between candidates of one photo).
     contrast : mean red-ness contrast of the band.
-    coverage : fraction of the band's length where the band is seen (gaps = occluders).
+    coverage : fraction of the band's length where it is seen (gaps = occluders).
     span : fraction of the trunk width the band spans (NaN without a tree mask).
+    hue : mean orange-ness ``(G - B) / R`` of the band.
     polyline : (N, 2) float32 centre line (x, y).
+    features : the values entering the score (see :func:`candidate_features`).
     """
     center_xy: tuple[float, float]
     direction: tuple[float, float]
     length_px: float
     thickness_px: float
-    score: float
+    score: float = 0.0
     contrast: float = 0.0
     coverage: float = 1.0
     span: float = float("nan")
     hue: float = 0.0
     polyline: np.ndarray | None = field(default=None, repr=False)
-    _members: list = field(default_factory=list, repr=False)
+    features: dict = field(default_factory=dict, repr=False)
+    level: int = field(default=0, repr=False)
+    resid: float = field(default=0.0, repr=False)
+    members: int = field(default=1, repr=False)
+    clutter: float = field(default=0.0, repr=False)
+    density: float = field(default=0.0, repr=False)
+    edges: tuple = field(default=(0.0, 0.0), repr=False)
 
     def as_dict(self) -> dict:
         """JSON-friendly summary."""
@@ -77,12 +92,12 @@ class RopeDetection:
     Attributes
     ----------
     found : a single rope was found.
-    reason : why not found (or an ambiguity message naming the candidate positions); ``""`` if found.
+    reason : why not found, or the ambiguity message naming the candidate positions; ``""`` if found.
     center_xy : (x, y) where the rope crosses the middle of the trunk, full-resolution pixels.
     direction : unit (dx, dy) of the band across the trunk (dx >= 0).
     polyline : (N, 2) float32 rope centre line (x, y) pixels.
     thickness_px : rope thickness across the band, pixels.
-    mask : (H, W) bool rope pixels (all False when not found).
+    mask : (H, W) bool rope pixels (None when not found).
     score : score of the chosen candidate (0 when none).
     candidates : scored alternatives, best first (for ``--pick`` and error messages).
     ambiguous : two candidates scored within the ambiguity margin (then ``found`` is False).
@@ -107,9 +122,9 @@ class RopeDetection:
 # ----------------------------------------------------------------------------- low-level maps
 
 def redness_map(rgb: np.ndarray, offset: float = 30.0) -> np.ndarray:
-    """Red chromaticity ``(R - max(G, B) - max(G - B, 0) / 2) / (R + G + B + offset)``.
+    """Red chromaticity ``max(0, R - max(G, B) - max(G - B, 0) / 2) / (R + G + B + offset)``.
 
-    The ``G - B`` term lowers orange (sandy ground, flagging tape) relative to rope red.
+    Clipped at 0 so that a grey band between green leaves is no "redder" than its neighbours.
 
     Parameters
     ----------
@@ -118,15 +133,15 @@ def redness_map(rgb: np.ndarray, offset: float = 30.0) -> np.ndarray:
 
     Returns
     -------
-    (H, W) float32 in about [-0.5, 1].
+    (H, W) float32 in [0, 1).
     """
-    f = rgb.astype(np.float32)
-    R, G, B = f[..., 0], f[..., 1], f[..., 2]
-    num = R - np.maximum(G, B) - 0.5 * np.maximum(G - B, 0)
-    den = R + G + B
+    R, G, B = cv2.split(rgb.astype(np.float32))
+    gb = cv2.subtract(G, B)
+    num = cv2.subtract(R, cv2.max(G, B))
+    num = cv2.scaleAdd(cv2.max(gb, 0.0), -0.5, num)
+    den = cv2.add(cv2.add(R, G), B)
     den += offset
-    num /= den
-    return num
+    return cv2.max(cv2.divide(num, den), 0.0)
 
 
 def line_contrast(F: np.ndarray, ds: tuple[int, ...] = (2, 3), sigma_x: float = 2.0,
@@ -143,45 +158,45 @@ def line_contrast(F: np.ndarray, ds: tuple[int, ...] = (2, 3), sigma_x: float = 
 
     Returns
     -------
-    (H, W) float32 >= 0, same units as ``F``.
+    (H, W) float32 >= 0, in the units of ``F``.
     """
     G = cv2.GaussianBlur(F, (0, 0), sigmaX=sigma_x, sigmaY=sigma_y)
     H = G.shape[0]
     out = np.zeros_like(G)
     for d in ds:
-        if d >= H:
+        if 2 * d >= H:
             continue
-        a = G[d:H - d] - G[:H - 2 * d]
-        b = G[d:H - d] - G[2 * d:]
-        np.minimum(a, b, out=a)
-        np.maximum(out[d:H - d], a, out=out[d:H - d])
+        a = cv2.subtract(G[d:H - d], G[:H - 2 * d])
+        b = cv2.subtract(G[d:H - d], G[2 * d:])
+        out[d:H - d] = cv2.max(out[d:H - d], cv2.min(a, b))
     return out
 
 
-# ----------------------------------------------------------------------------- segments
+# ----------------------------------------------------------------------------- pieces
 
-_SEG_KEYS = ("cx", "cy", "theta", "length", "thick", "contrast", "red", "hue", "area", "level")
+_SEG_KEYS = ("cx", "cy", "theta", "length", "thick", "contrast", "hue", "area", "level")
 
 
-def _segments(R: np.ndarray, F: np.ndarray, hue: np.ndarray, thr: float, min_len: float, f: float):
-    """Components of ``R > thr`` described by moments, in level-0 pixels (level pixels times ``f``).
+def _segments(R: np.ndarray, rgb: np.ndarray, thr: float, min_len: float, level: int):
+    """Components of ``R > thr`` described by moments, in level-0 pixels.
 
     Returns a dict of (K,) arrays (see ``_SEG_KEYS``) or None.
     """
-    m = (R > thr).astype(np.uint8)
+    f = 2.0 ** level
+    m = cv2.compare(R, thr, cv2.CMP_GT)
     n, lab, stats, _ = cv2.connectedComponentsWithStats(m, connectivity=8)
     if n <= 1:
         return None
     w = stats[1:, cv2.CC_STAT_WIDTH]
     h = stats[1:, cv2.CC_STAT_HEIGHT]
-    keep = np.flatnonzero((np.hypot(w, h) >= min_len) & (w >= 0.6 * h)) + 1
+    keep = np.flatnonzero((w + h >= min_len) & (w >= 0.6 * h)) + 1
     if len(keep) == 0:
         return None
     remap = np.zeros(n, np.int32)
     remap[keep] = np.arange(1, len(keep) + 1)
-    li = remap[lab]
-    ys, xs = np.nonzero(li)
-    li = li[ys, xs] - 1
+    li_img = remap[lab]
+    ys, xs = np.nonzero(li_img)
+    li = li_img[ys, xs] - 1
     k = len(keep)
     wts = R[ys, xs].astype(np.float64)
     cnt = np.bincount(li, minlength=k).astype(np.float64)
@@ -193,8 +208,7 @@ def _segments(R: np.ndarray, F: np.ndarray, hue: np.ndarray, thr: float, min_len
     cyy = np.bincount(li, dy * dy, k) / cnt
     cxy = np.bincount(li, dx * dy, k) / cnt
     theta = 0.5 * np.arctan2(2 * cxy, cxx - cyy)           # major axis angle (image coords)
-    ct, st = np.cos(theta), np.sin(theta)
-    u = dx * ct[li] + dy * st[li]
+    u = dx * np.cos(theta)[li] + dy * np.sin(theta)[li]
     umin = np.full(k, np.inf)
     umax = np.full(k, -np.inf)
     np.minimum.at(umin, li, u)
@@ -205,9 +219,11 @@ def _segments(R: np.ndarray, F: np.ndarray, hue: np.ndarray, thr: float, min_len
     ok = (ang < np.deg2rad(55)) & (length >= min_len) & (length >= 1.5 * thick)
     if not ok.any():
         return None
-    seg = dict(cx=cx * f, cy=cy * f, theta=theta, length=length * f, thick=thick * f,
-               contrast=np.bincount(li, wts, k) / cnt, red=np.bincount(li, F[ys, xs], k) / cnt,
-               hue=np.bincount(li, hue[ys, xs], k) / cnt, area=cnt * f * f)
+    px = rgb[ys, xs].astype(np.float32)
+    hue = (px[:, 1] - px[:, 2]) / (px[:, 0] + 8.0)                  # orange-ness (G - B) / R
+    seg = dict(cx=cx * f, cy=cy * f, theta=theta, length=length * f,
+               thick=thick * f, contrast=np.bincount(li, wts, k) / cnt, hue=np.bincount(li, hue, k) / cnt,
+               area=cnt * f * f, level=np.full(k, level))
     return {kk: v[ok] for kk, v in seg.items()}
 
 
@@ -267,15 +283,28 @@ def _link(seg: dict) -> list[list[int]]:
 
 
 def _runs(seg: dict, chains: list[list[int]], min_contrast: float, max_run: int = 8) -> list[list[int]]:
-    """All runs of up to ``max_run`` consecutive segments of each chain, best band score first."""
+    """Runs of up to ``max_run`` consecutive linked pieces worth fitting, best band score first.
+
+    Per chain: its 3 best runs and its 3 best single pieces (a sub-run may be the rope and the
+    whole chain the rope plus collinear clutter, or the reverse).
+    """
     out, scores = [], []
-    for ch in chains:
+    single = np.array([len(ch) == 1 for ch in chains], bool)
+    if single.any():                                   # vectorised: most chains are one piece
+        q = np.array([ch[0] for ch, s1 in zip(chains, single) if s1])
+        s = _band_score(seg["contrast"][q], seg["length"][q], seg["thick"][q], 1.0, seg["hue"][q])
+        s[(seg["contrast"][q] < min_contrast) | (seg["length"][q] < 8)] = 0.0
+        for k in np.flatnonzero(s > 0):
+            out.append([int(q[k])])
+            scores.append(s[k])
+    for ch in (ch for ch, s1 in zip(chains, single) if not s1):
         ch = np.asarray(ch)
         n = len(ch)
         a = seg["area"][ch]
-        cs = lambda v: np.concatenate([[0.0], np.cumsum(v)])
-        A, CL = cs(a), cs(seg["length"][ch])
-        AC, AH = cs(a * seg["contrast"][ch]), cs(a * seg["hue"][ch])
+        A = np.concatenate([[0.0], np.cumsum(a)])
+        CL = np.concatenate([[0.0], np.cumsum(seg["length"][ch])])
+        AC = np.concatenate([[0.0], np.cumsum(a * seg["contrast"][ch])])
+        AH = np.concatenate([[0.0], np.cumsum(a * seg["hue"][ch])])
         i, j = np.meshgrid(np.arange(n), np.arange(1, n + 1), indexing="ij")
         ok = (j > i) & (j - i <= max_run)
         i, j = i[ok], j[ok]
@@ -287,15 +316,19 @@ def _runs(seg: dict, chains: list[list[int]], min_contrast: float, max_run: int 
         ext = np.maximum(ext, seg["length"][ch][i])
         s = _band_score(con, ext, area / np.maximum(covered, 1.0), np.minimum(1.0, covered / ext), hue)
         s[(con < min_contrast) | (ext < 8)] = 0.0
-        for q in np.flatnonzero(s > 0):
-            out.append(list(ch[i[q]:j[q]]))
-            scores.append(s[q])
+        sel = list(np.argsort(-s)[:3])
+        one = np.flatnonzero(j - i == 1)
+        sel += list(one[np.argsort(-s[one])[:3]])
+        for q in dict.fromkeys(sel):
+            if s[q] > 0:
+                out.append([int(v) for v in ch[i[q]:j[q]]])
+                scores.append(s[q])
     order = np.argsort(-np.asarray(scores)) if scores else []
     return [out[q] for q in order]
 
 
 def _band_score(contrast, length, thick, coverage, hue):
-    """Score from the band alone: contrast, length, continuity, thinness, red (not orange) hue."""
+    """Cheap ranking score from the band alone (contrast, length, continuity, thinness, hue)."""
     T = np.maximum(thick, 0.7)
     shape = np.clip((length / T - 3.0) / 10.0, 0.0, 1.0)
     hue_pen = np.clip(1.0 - 3.0 * np.maximum(0.0, hue - 0.2), 0.25, 1.0)
@@ -303,22 +336,25 @@ def _band_score(contrast, length, thick, coverage, hue):
 
 
 def _make_candidate(seg: dict, idx: list[int]) -> RopeCandidate:
-    """Fit a band (quadratic centre line) through member segments ``idx`` (level-0 pixels)."""
+    """Fit a band (quadratic centre line) through member pieces ``idx`` (level-0 pixels)."""
     idx = np.asarray(idx)
     xl, yl, xr, yr = seg["xl"][idx], seg["yl"][idx], seg["xr"][idx], seg["yr"][idx]
     cx, cy = seg["cx"][idx], seg["cy"][idx]
     a = seg["area"][idx]
     x0, x1 = float(xl.min()), float(xr.max())
-    px = np.concatenate([xl, cx, xr])
-    py = np.concatenate([yl, cy, yr])
-    pw = np.concatenate([a, 2 * a, a]) * np.tile(seg["contrast"][idx], 3)
-    xm = float(np.average(px, weights=pw))
-    deg = 2 if len(idx) >= 2 else 1
-    A = np.stack([np.ones_like(px), px - xm, (px - xm) ** 2][:deg + 1], 1)
-    sw = np.sqrt(pw)
-    coef, *_ = np.linalg.lstsq(A * sw[:, None], py * sw, rcond=None)
-    if deg == 1:
-        coef = np.append(coef, 0.0)
+    if len(idx) == 1:
+        coef = np.array([cy[0], (yr[0] - yl[0]) / max(xr[0] - xl[0], 1e-3), 0.0])
+        xm = float(cx[0])
+        resid = 0.0
+    else:
+        px = np.concatenate([xl, cx, xr])
+        py = np.concatenate([yl, cy, yr])
+        pw = np.tile(a * seg["contrast"][idx], 3) * np.repeat([1.0, 2.0, 1.0], len(idx))
+        xm = float(np.average(px, weights=pw))
+        A = np.stack([np.ones_like(px), px - xm, (px - xm) ** 2], 1)
+        sw = np.sqrt(pw)
+        coef = np.linalg.lstsq(A * sw[:, None], py * sw, rcond=None)[0]
+        resid = float(np.sqrt(np.average((py - A @ coef) ** 2, weights=pw)))
     xs = np.linspace(x0, x1, 24)
     ys = coef[0] + coef[1] * (xs - xm) + coef[2] * (xs - xm) ** 2
     arc = float(np.hypot(np.diff(xs), np.diff(ys)).sum()) + 1.0
@@ -328,20 +364,62 @@ def _make_candidate(seg: dict, idx: list[int]) -> RopeCandidate:
     yc = coef[0] + coef[1] * (xc - xm) + coef[2] * (xc - xm) ** 2
     d = np.array([1.0, coef[1] + 2 * coef[2] * (xc - xm)])
     d /= np.linalg.norm(d)
-    c = RopeCandidate(center_xy=(float(xc), float(yc)), direction=(float(d[0]), float(d[1])),
-                      length_px=arc, thickness_px=area / max(covered, 1.0), score=0.0,
-                      contrast=float(np.average(seg["contrast"][idx], weights=a)),
-                      coverage=min(1.0, covered / arc), hue=float(np.average(seg["hue"][idx], weights=a)),
-                      polyline=np.stack([xs, ys], 1).astype(np.float32))
-    c._members = [int(i) for i in idx]
-    c.level = int(np.round(np.average(seg["level"][idx], weights=a)))
-    c.pre = _prescore(c)
-    return c
+    return RopeCandidate(
+        center_xy=(float(xc), float(yc)), direction=(float(d[0]), float(d[1])),
+        length_px=arc, thickness_px=area / max(covered, 1.0),
+        contrast=float(np.average(seg["contrast"][idx], weights=a)), coverage=min(1.0, covered / arc),
+        hue=float(np.average(seg["hue"][idx], weights=a)), polyline=np.stack([xs, ys], 1).astype(np.float32),
+        level=int(np.round(np.average(seg["level"][idx], weights=a))), resid=resid, members=len(idx))
 
 
-def _prescore(c: RopeCandidate) -> float:
-    """Band-only score of a fitted candidate (see :func:`_band_score`)."""
-    return float(_band_score(c.contrast, c.length_px, c.thickness_px, c.coverage, c.hue))
+# ----------------------------------------------------------------------------- context
+
+class _Counts:
+    """Box counts of a binary map on a grid of ``cell`` x ``cell`` pixels (integral image)."""
+
+    def __init__(self, mask: np.ndarray, cell: int = 4):
+        h, w = mask.shape
+        hc, wc = -(-h // cell), -(-w // cell)
+        m = np.zeros((hc * cell, wc * cell), np.float32)
+        m[:h, :w] = mask
+        cnt = m.reshape(hc, cell, wc, cell).sum((1, 3))
+        self.I = cv2.integral(cnt, sdepth=cv2.CV_64F)
+        self.cell, self.hc, self.wc = cell, hc, wc
+
+    def _cells(self, x0, y0, x1, y1):
+        c = self.cell
+        return (min(max(round(x0 / c), 0), self.wc), min(max(round(y0 / c), 0), self.hc),
+                min(max(round(x1 / c), 0), self.wc), min(max(round(y1 / c), 0), self.hc))
+
+    def __call__(self, x0, y0, x1, y1) -> float:
+        """Count of set pixels in the box [x0, x1) x [y0, y1) (rounded to cells)."""
+        a, u, b, v = self._cells(x0, y0, x1, y1)
+        if b <= a or v <= u:
+            return 0.0
+        I = self.I
+        return float(I[v, b] - I[u, b] - I[v, a] + I[u, a])
+
+    def area(self, x0, y0, x1, y1) -> float:
+        """Pixel area of the same (rounded) box."""
+        a, u, b, v = self._cells(x0, y0, x1, y1)
+        return float(max(0, b - a) * max(0, v - u) * self.cell ** 2)
+
+
+def _clutter(c: RopeCandidate, counts: _Counts) -> None:
+    """Thin red lines around a candidate (level-0 pixels).
+
+    ``clutter``: line pixels on the trunk face just above and below the band (within its x range),
+    relative to the band's area; ``density``: fraction of line pixels in a box around the band.
+    """
+    p, L, T = c.polyline, c.length_px, max(c.thickness_px, 1.0)
+    x0, x1 = p[0, 0] + 0.1 * L, p[-1, 0] - 0.1 * L
+    ya, yb = p[:, 1].min(), p[:, 1].max()
+    face = counts(x0, ya - 0.5 * L, x1, yb + 0.5 * L)
+    band = counts(x0, ya - T - 2, x1, yb + T + 2)
+    c.clutter = max(0.0, face - band) / max(L * T, 1.0)
+    m = max(16.0, 0.6 * L)
+    box = (p[0, 0] - m, ya - m, p[-1, 0] + m, yb + m)
+    c.density = counts(*box) / max(counts.area(*box), 1.0)
 
 
 def _maxfilt(v: np.ndarray, r: int) -> np.ndarray:
@@ -352,60 +430,73 @@ def _maxfilt(v: np.ndarray, r: int) -> np.ndarray:
                       borderType=cv2.BORDER_REPLICATE)[0]
 
 
-def _context(c: RopeCandidate, gray: np.ndarray, mask0: np.ndarray) -> None:
-    """Trunk context of a candidate on the working image (level-0 pixels).
+def _edges(c: RopeCandidate, gray_integral: np.ndarray) -> None:
+    """Do both band ends sit on a vertical intensity edge (the trunk silhouette)?
 
-    ``edge``: both band ends lie on a vertical intensity edge (the trunk silhouette) that holds
-    above and below the band, in [0, 1]. ``clutter``: other thin red lines on the trunk area
-    just above and below the band, relative to the band's own area.
+    For each end, the grey column means of 4 horizontal strips (2 above, 2 below the band) are
+    taken in a window around the end; a step between the means of two adjacent boxes must appear
+    in every strip with the same sign, allowing for a trunk leaning up to 15 deg.
+    ``edges`` = per end ``step / (step + 6)`` (grey levels).
     """
-    H, W = gray.shape
+    II = gray_integral
+    H, W = II.shape[0] - 1, II.shape[1] - 1
     L = c.length_px
     T = max(c.thickness_px, 1.0)
     p = c.polyline
-    hs = int(np.clip(0.2 * L, 4, 80))                 # height of each of the 4 sub-strips
-    a = int(np.clip(0.05 * L, 1, 16))                 # half width of the step box
-    s = int(np.clip(0.2 * L, 3, 100))                 # search range around each band end
-    edges = []
+    hs = int(min(max(0.2 * L, 4), 80))                 # height of each sub-strip
+    a = int(min(max(0.05 * L, 1), 16))                 # width of the step boxes
+    s = int(min(max(0.2 * L, 3), 100))                 # search range around the band end
+    out = []
     for (xe, ye) in (p[0], p[-1]):
         xa = int(round(xe)) - s - a - 1
         xb = int(round(xe)) + s + a + 2
         prof, reach = [], []
-        for ya, dist in ((ye - T - 1 - 2 * hs, 1.5 * hs), (ye - T - 1 - hs, 0.5 * hs),
-                         (ye + T + 1, 0.5 * hs), (ye + T + 1 + hs, 1.5 * hs)):
-            ya = int(round(ya))
-            if ya < 0 or ya + hs > H or xa < 0 or xb > W:
-                continue
-            prof.append(gray[ya:ya + hs, xa:xb].mean(0))
-            reach.append(int(round(0.27 * (dist + T))))        # trunk lean / tilt up to 15 deg
+        if xa >= 0 and xb <= W:
+            for ya, dist in ((ye - T - 1 - 2 * hs, 1.5 * hs), (ye - T - 1 - hs, 0.5 * hs),
+                             (ye + T + 1, 0.5 * hs), (ye + T + 1 + hs, 1.5 * hs)):
+                ya = int(round(ya))
+                if ya < 0 or ya + hs > H:
+                    continue
+                # running sum over x of the strip's column sums, divided by the strip height
+                prof.append((II[ya + hs, xa:xb + 1] - II[ya, xa:xb + 1]) / hs)
+                reach.append(int(round(0.27 * (dist + T))))
         if len(prof) < 2:
-            edges.append(0.0)
+            out.append(0.0)
             continue
-        P = np.cumsum(np.pad(np.stack(prof), ((0, 0), (1, 0))), 1)
-        n = P.shape[1] - 1
-        x = np.arange(a, n - a)
+        P = np.stack(prof)
+        x = np.arange(a, P.shape[1] - a)
         D = (P[:, x + a] - 2 * P[:, x] + P[:, x - a]) / a      # right box mean - left box mean
         best = 0.0
         for sg in (1.0, -1.0):
-            Ds = np.stack([_maxfilt(sg * d, r) for d, r in zip(D, reach)])
-            e = np.maximum(0.0, Ds.min(0))
+            e = np.stack([_maxfilt(sg * d, r) for d, r in zip(D, reach)]).min(0)
             best = max(best, float(e.max()) if e.size else 0.0)
-        edges.append(best / (best + 6.0))
-    c.edge = float(np.sqrt(edges[0] * edges[1]))
-    c.edges = edges
-    # clutter on the trunk face above/below the band
-    x0 = int(np.clip(round(p[0, 0] + 0.1 * L), 0, W - 1))
-    x1 = int(np.clip(round(p[-1, 0] - 0.1 * L), 0, W))
-    ya = int(np.clip(round(p[:, 1].min() - 0.5 * L), 0, H - 1))
-    yb = int(np.clip(round(p[:, 1].max() + 0.5 * L + 1), 0, H))
-    if x1 > x0 and yb > ya:
-        sub = mask0[ya:yb, x0:x1]
-        yc = np.interp(np.arange(x0, x1), p[:, 0], p[:, 1])
-        band = np.abs(np.arange(ya, yb)[:, None] - yc[None, :]) <= T + 2
-        cnt = float(np.count_nonzero(sub & ~band))
-        c.clutter = cnt / max(L * T, 1.0)
-    else:
-        c.clutter = 0.0
+        out.append(best / (best + 6.0))
+    c.edges = (out[0], out[1])
+
+
+#: Weights of the log-linear candidate score: ``score = exp(sum w_k * feature_k)``
+#: (features: :func:`candidate_features`).
+SCORE_WEIGHTS = dict(log_contrast=1.0, log_length=0.5, log_density=-0.3, coverage=2.0, shape=2.0, hue=-10.0,
+                     edge_min=1.0, edge_max=2.0, log_clutter=-1.0, members=-0.3, coarse=-1.0, resid=-1.0)
+
+
+def candidate_features(c: RopeCandidate) -> dict:
+    """Features of a candidate (working-image pixels) entering its score."""
+    T = max(c.thickness_px, 0.7)
+    return dict(
+        log_contrast=float(np.log(c.contrast)), log_length=float(np.log(c.length_px)),
+        log_density=float(np.log(c.density + 0.002)), coverage=float(c.coverage),
+        shape=float(np.clip((c.length_px / T - 3.0) / 10.0, 0.0, 1.0)), hue=float(max(0.0, c.hue - 0.15)),
+        edge_min=float(min(c.edges)), edge_max=float(max(c.edges)), log_clutter=float(np.log1p(c.clutter)),
+        members=float(c.members - 1), coarse=float(c.level == 2), resid=float(c.resid / T))
+
+
+def _score(c: RopeCandidate, weights: dict | None = None) -> float:
+    w = SCORE_WEIGHTS if weights is None else weights
+    c.features = candidate_features(c)
+    if c.features["shape"] <= 0:
+        return 0.0
+    return float(np.exp(sum(w[k] * c.features[k] for k in w)))
 
 
 # ----------------------------------------------------------------------------- detector
@@ -413,30 +504,32 @@ def _context(c: RopeCandidate, gray: np.ndarray, mask0: np.ndarray) -> None:
 def detect_rope(rgb: np.ndarray, tree_mask: np.ndarray | None = None, *,
                 pick_xy: tuple[float, float] | None = None,
                 height_check: Callable[[RopeCandidate], bool] | None = None,
-                work_long_side: int = 1600, min_contrast: float = 0.025, min_score: float = 0.0,
-                ambiguity_ratio: float = 0.75, max_candidates: int = 40,
-                max_segments: int = 500) -> RopeDetection:
+                work_long_side: int = 1600, min_contrast: float = 0.02, min_score: float = 0.0,
+                ambiguity_ratio: float = 0.75, max_candidates: int = 60, max_segments: int = 400,
+                weights: dict | None = None) -> RopeDetection:
     """Find the red rope tied around a trunk.
 
     Parameters
     ----------
     rgb : (H, W, 3) uint8 RGB photo.
-    tree_mask : (H, W) bool trunk/tree pixels, optional; candidates that span a trunk's width
-        are preferred and bands off the mask are penalised.
-    pick_xy : (x, y) full-resolution pixel; choose the candidate nearest to it (resolves ambiguity).
+    tree_mask : (H, W) bool trunk/tree pixels, optional; bands that lie on the mask and span the
+        trunk's width there are preferred, bands off the mask are penalised.
+    pick_xy : (x, y) full-resolution pixel: choose the candidate nearest to it (resolves ambiguity).
     height_check : optional callable ``candidate -> bool`` from the pipeline (e.g. "is this about
         1.3 m above the ground?"); candidates for which it returns False are dropped.
     work_long_side : candidates are searched on a copy downscaled to this long side.
     min_contrast : minimum mean red-ness contrast of a band.
-    min_score : candidates scoring below are ignored.
+    min_score : the best candidate must score above this to be a rope.
     ambiguity_ratio : a second candidate scoring at least this fraction of the best makes the
         result ambiguous (``found=False``, ``ambiguous=True``) unless ``pick_xy`` is given.
-    max_candidates : how many of the best band candidates get the (costlier) context check.
+    max_candidates : how many bands (by the cheap band score) get the full score.
     max_segments : at most this many line pieces (the most contrasted) are linked into bands.
+    weights : override :data:`SCORE_WEIGHTS`.
 
     Returns
     -------
     RopeDetection
+        ``center_xy``/``polyline``/``mask`` in full-resolution pixels of ``rgb``.
     """
     t0 = time.perf_counter()
     tm: dict[str, float] = {}
@@ -455,51 +548,43 @@ def detect_rope(rgb: np.ndarray, tree_mask: np.ndarray | None = None, *,
     s = min(1.0, work_long_side / max(H, W))
     small = rgb if s >= 1.0 else cv2.resize(rgb, (round(W * s), round(H * s)), interpolation=cv2.INTER_AREA)
     sx, sy = W / small.shape[1], H / small.shape[0]
-    F = redness_map(small)
-    f = small.astype(np.float32)
-    hue = (f[..., 1] - f[..., 2]) / (f[..., 0] + 8.0)            # orange-ness: (G - B) / R
-    gray = cv2.cvtColor(small, cv2.COLOR_RGB2GRAY).astype(np.float32)
-    lap("prepare")
+    lap("resize")
 
     thr = 0.6 * min_contrast
-    segs, mask0 = [], None
+    segs, img, counts = [], small, None
     for level in range(3):
-        R = line_contrast(F)
+        R = line_contrast(redness_map(img))
         if level == 0:
-            mask0 = R > thr
-        sg = _segments(R, F, hue, thr=thr, min_len=5.0, f=2.0 ** level)
+            counts = _Counts(R > thr)
+        sg = _segments(R, img, thr=thr, min_len=5.0, level=level)
         if sg is not None:
-            sg["level"] = np.full(len(sg["cx"]), level)
             segs.append(sg)
-        if level < 2 and min(F.shape) >= 64:
-            F, hue = cv2.pyrDown(F), cv2.pyrDown(hue)
+        if level < 2 and min(img.shape[:2]) >= 64:
+            img = cv2.pyrDown(img)
         else:
             break
     lap("lines")
-    none = RopeDetection(False, "no red rope found (no thin red band crossing a trunk)", timings_ms=tm)
+    none = RopeDetection(False, "no red rope found (no thin red band across a trunk)", timings_ms=tm)
     if not segs:
         return none
     seg = {k: np.concatenate([g[k] for g in segs]) for k in _SEG_KEYS}
-    # drop specks; bound the pairwise linking cost
     keep = (seg["contrast"] >= 0.5 * min_contrast) & ((seg["length"] >= 10) | (seg["contrast"] >= min_contrast))
     seg = {k: v[keep] for k, v in seg.items()}
     if len(seg["cx"]) > max_segments:
         top = np.argsort(-seg["contrast"] * np.sqrt(seg["length"]))[:max_segments]
         seg = {k: v[top] for k, v in seg.items()}
-    # rank every run of up to 8 consecutive linked segments by the band-only score, fit the best
-    runs = _runs(seg, _link(seg), min_contrast)
-    cands = [_make_candidate(seg, idx) for idx in runs[:3 * max_candidates]]
-    cands = [c for c in cands if c.pre > 0]
-    cands.sort(key=lambda c: -c.pre)
-    cands = _dedupe(cands, key="pre")[:max_candidates]
-    lap("group")
+    runs = _runs(seg, _link(seg), min_contrast)[:max_candidates]
+    cands = [_make_candidate(seg, idx) for idx in runs]
+    lap("bands")
+    gray_ii = cv2.integral(cv2.cvtColor(small, cv2.COLOR_RGB2GRAY), sdepth=cv2.CV_32S).astype(np.float32)
     for c in cands:
-        _context(c, gray, mask0)
-        c.score = _final_score(c)
-    # to full resolution
+        _clutter(c, counts)
+        _edges(c, gray_ii)
+        c.score = _score(c, weights)
+    # to full-resolution pixels
     for c in cands:
-        c.polyline = c.polyline * np.array([sx, sy], np.float32)
-        c.center_xy = (c.center_xy[0] * sx, c.center_xy[1] * sy)
+        c.polyline = (c.polyline + 0.5) * np.array([sx, sy], np.float32) - 0.5
+        c.center_xy = ((c.center_xy[0] + 0.5) * sx - 0.5, (c.center_xy[1] + 0.5) * sy - 0.5)
         c.length_px *= sx
         c.thickness_px *= sy
     if tree_mask is not None:
@@ -507,11 +592,12 @@ def detect_rope(rgb: np.ndarray, tree_mask: np.ndarray | None = None, *,
             _apply_tree_mask(c, tree_mask)
     if height_check is not None:
         cands = [c for c in cands if height_check(c)]
-    cands = [c for c in cands if c.score > min_score]
+    cands = [c for c in cands if c.score > 0]
     cands.sort(key=lambda c: -c.score)
-    cands = _dedupe(cands, key="score")
+    cands = _dedupe(cands)
     lap("score")
-    if not cands:
+    if not cands or (pick_xy is None and cands[0].score <= min_score):
+        none.candidates = cands
         return none
     best = cands[0]
     if pick_xy is not None:
@@ -528,10 +614,6 @@ def detect_rope(rgb: np.ndarray, tree_mask: np.ndarray | None = None, *,
     tm["total"] = round(1000 * (time.perf_counter() - t0), 2)
     det.timings_ms = tm
     return det
-
-
-def _final_score(c: RopeCandidate) -> float:
-    return float(c.pre * (0.15 + 0.85 * c.edge) / (1.0 + c.clutter))
 
 
 def _dist_to(c: RopeCandidate, px: float, py: float) -> float:
