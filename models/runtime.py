@@ -164,34 +164,61 @@ class OnnxPredictor:
 
 @dataclass
 class SegmentationResult:
-    """Output of :meth:`Segmenter.predict` (all masks at ``size`` = (W, H)).
+    """Output of :meth:`Segmenter.predict` (all maps at ``size`` = (W, H)).
 
     Attributes
     ----------
-    tree_masks : (N, H, W) bool
-        One mask per detected tree (non-overlapping), sorted by decreasing score.
-    tree_scores : (N,) float32
-        Class probability x mean mask probability inside the mask.
-    stuff_masks : dict name -> (H, W) bool
-        ``sky``, ``ground``, ``other_vegetation``, ``other`` (present classes only).
+    instance : (H, W) uint16
+        0 = no tree, k = tree ``k`` (1-based, trees sorted by decreasing score).
     semantic : (H, W) uint8
         Semantic id per pixel (0 sky, 1 ground, 2 other vegetation, 3 tree, 4 other;
         255 = unassigned).
-    instance : (H, W) uint16
-        0 = no tree, k = ``tree_masks[k - 1]``.
+    tree_scores : (N,) float32
+        Score of tree ``k`` at index ``k - 1``: class probability x mean mask probability.
     classes : tuple of str
+        Class names by semantic id.
+
+    ``tree_masks`` (N, H, W) bool and ``stuff_masks`` (name -> (H, W) bool) are derived on
+    demand (a 12 MP photo with 40 trees would need 480 MB of masks).
     """
 
-    tree_masks: np.ndarray
-    tree_scores: np.ndarray
-    stuff_masks: dict[str, np.ndarray]
-    semantic: np.ndarray
     instance: np.ndarray
+    semantic: np.ndarray
+    tree_scores: np.ndarray
     classes: tuple[str, ...] = field(default_factory=tuple)
+    tree_class: int = 3
 
     @property
     def size(self) -> tuple[int, int]:
         return (self.semantic.shape[1], self.semantic.shape[0])
+
+    @property
+    def n_trees(self) -> int:
+        return int(len(self.tree_scores))
+
+    def tree_mask(self, k: int) -> np.ndarray:
+        """(H, W) bool mask of tree ``k`` (1-based)."""
+        return self.instance == k
+
+    @property
+    def tree_masks(self) -> np.ndarray:
+        """(N, H, W) bool, one per tree (non-overlapping), by decreasing score."""
+        H, W = self.instance.shape
+        out = np.zeros((self.n_trees, H, W), bool)
+        for k in range(self.n_trees):
+            out[k] = self.instance == k + 1
+        return out
+
+    @property
+    def stuff_masks(self) -> dict[str, np.ndarray]:
+        """Class name -> (H, W) bool for the stuff classes present."""
+        out = {}
+        for c in np.unique(self.semantic):
+            if c == 255 or c == self.tree_class:
+                continue
+            name = self.classes[c] if c < len(self.classes) else str(int(c))
+            out[name] = self.semantic == c
+        return out
 
 
 def _sigmoid(x: np.ndarray) -> np.ndarray:
@@ -206,7 +233,7 @@ def _softmax(x: np.ndarray) -> np.ndarray:
 def panoptic_merge(class_logits: np.ndarray, mask_logits: np.ndarray, size: tuple[int, int],
                    thing_classes: tuple[int, ...] = (3,), score_threshold: float = 0.5,
                    overlap_threshold: float = 0.8, mask_threshold: float = 0.5,
-                   max_pixels_per_chunk: int = 4_000_000) -> dict[str, Any]:
+                   work_max_side: int | None = 1024) -> dict[str, Any]:
     """Mask2Former panoptic inference: greedy, non-overlapping segments.
 
     Parameters
@@ -215,73 +242,84 @@ def panoptic_merge(class_logits: np.ndarray, mask_logits: np.ndarray, size: tupl
         Last class is "no object".
     mask_logits : (Q, h, w)
     size : (W, H)
-        Output resolution; masks are bilinearly resized (logit space) before merging, one query
-        at a time (memory ``O(H * W)`` even for 12 MP photos).
+        Output resolution.
     thing_classes : tuple of int
         Classes whose queries become separate instances (tree); others merge per class.
     score_threshold : float
         Min class probability of a kept query (Mask2Former ``object_mask_threshold``, 0.8 there).
     overlap_threshold : float
         Min fraction of a query's own mask that survives the arg-max (Mask2Former default 0.8).
+    work_max_side : int or None
+        Masks are bilinearly upsampled (logit space) to a working resolution whose long side is
+        at most this, merged there, and the segment map is resized to ``size`` with nearest
+        neighbour (the logits are 1/4 of the network input, so a finer working grid adds no
+        information). ``None``: merge at ``size``.
 
     Returns
     -------
     dict
-        ``segments``: list of ``{"id", "label", "score", "isthing"}``; ``panoptic`` (H, W) int32
+        ``segments``: list of ``{"id", "label", "score", "isthing", "query", "mask_prob"}``
+        (``mask_prob`` = mean mask probability inside the segment); ``panoptic`` (H, W) int32
         segment id per pixel (0 = none).
     """
-    W, H = size
+    W, H = int(size[0]), int(size[1])
+    if work_max_side and max(W, H) > work_max_side:
+        f = work_max_side / max(W, H)
+        w, h = max(1, int(round(W * f))), max(1, int(round(H * f)))
+    else:
+        w, h = W, H
     C1 = class_logits.shape[-1]
     probs = _softmax(class_logits.astype(np.float32))
     labels = probs.argmax(-1)
     scores = probs.max(-1)
     keep = np.nonzero((labels != C1 - 1) & (scores > score_threshold))[0]
-    panoptic = np.zeros((H, W), np.int32)
     segments: list[dict[str, Any]] = []
     if keep.size == 0:
-        return {"segments": segments, "panoptic": panoptic}
-
-    def up(q: int) -> np.ndarray:
-        m = mask_logits[q].astype(np.float32)
-        if m.shape != (H, W):
-            m = cv2.resize(m, (W, H), interpolation=cv2.INTER_LINEAR)
-        return _sigmoid(m)
-
-    # pass 1: arg-max of score * mask prob over kept queries
-    best = np.zeros((H, W), np.float32)
-    owner = np.full((H, W), -1, np.int32)
+        return {"segments": segments, "panoptic": np.zeros((H, W), np.int32)}
+    # one pass over kept queries: arg-max of score * prob, the owner's prob, each query's area
+    best = np.zeros((h, w), np.float32)
+    best_p = np.zeros((h, w), np.float32)
+    owner = np.full((h, w), -1, np.int32)
     orig_area = np.zeros(len(keep), np.int64)
     for j, q in enumerate(keep):
-        p = up(q)
-        orig_area[j] = int((p >= mask_threshold).sum())
+        m = mask_logits[q].astype(np.float32)
+        if m.shape != (h, w):
+            m = cv2.resize(m, (w, h), interpolation=cv2.INTER_LINEAR)
+        p = _sigmoid(m)
+        orig_area[j] = int(np.count_nonzero(p >= mask_threshold))
         v = p * scores[q]
         upd = v > best
         best[upd] = v[upd]
+        best_p[upd] = p[upd]
         owner[upd] = j
-    # pass 2: segments in query order
+    valid = (owner >= 0) & (best_p >= mask_threshold)
+    own_area = np.bincount(owner[owner >= 0], minlength=len(keep))
+    final_area = np.bincount(owner[valid], minlength=len(keep))
+    prob_sum = np.bincount(owner[valid], weights=best_p[valid], minlength=len(keep))
+    lut = np.zeros(len(keep) + 1, np.int32)  # index j + 1 -> segment id (index 0: owner -1)
     stuff_ids: dict[int, int] = {}
     next_id = 1
     for j, q in enumerate(keep):
         lab = int(labels[q])
         isthing = lab in thing_classes
-        own = owner == j
-        area = int(own.sum())
-        if area == 0 or orig_area[j] == 0:
+        if own_area[j] == 0 or orig_area[j] == 0 or final_area[j] == 0:
             continue
-        mask = own & (up(q) >= mask_threshold)
-        n = int(mask.sum())
-        if n == 0 or area / orig_area[j] < overlap_threshold:
+        if own_area[j] / orig_area[j] < overlap_threshold:
             continue
         if not isthing and lab in stuff_ids:
-            panoptic[mask] = stuff_ids[lab]
+            lut[j + 1] = stuff_ids[lab]
             continue
-        panoptic[mask] = next_id
+        lut[j + 1] = next_id
         if not isthing:
             stuff_ids[lab] = next_id
-        segments.append({"id": next_id, "label": lab, "score": float(scores[q]), "isthing": isthing,
-                         "query": int(q)})
+        segments.append({"id": next_id, "label": lab, "score": float(scores[q]),
+                         "isthing": isthing, "query": int(q),
+                         "mask_prob": float(prob_sum[j] / final_area[j])})
         next_id += 1
-    return {"segments": segments, "panoptic": panoptic}
+    pan = np.where(valid, lut[owner + 1], 0).astype(np.int32)
+    if (w, h) != (W, H):
+        pan = cv2.resize(pan, (W, H), interpolation=cv2.INTER_NEAREST)
+    return {"segments": segments, "panoptic": pan}
 
 
 class Segmenter(OnnxPredictor):
@@ -305,7 +343,8 @@ class Segmenter(OnnxPredictor):
 
     def predict(self, rgb: np.ndarray, size: tuple[int, int] | None = None,
                 score_threshold: float = 0.5, overlap_threshold: float = 0.8,
-                mask_threshold: float = 0.5) -> SegmentationResult:
+                mask_threshold: float = 0.5, work_max_side: int | None = 1024
+                ) -> SegmentationResult:
         """Segment a photo.
 
         Parameters
@@ -313,36 +352,25 @@ class Segmenter(OnnxPredictor):
         rgb : (H, W, 3) uint8
         size : (W, H), optional
             Output resolution; default the photo's.
-        score_threshold, overlap_threshold, mask_threshold : float
+        score_threshold, overlap_threshold, mask_threshold, work_max_side
             See :func:`panoptic_merge`.
         """
         size = size or (rgb.shape[1], rgb.shape[0])
         cls, msk = self.raw(rgb)
         res = panoptic_merge(cls, msk, size, (self.tree_class,), score_threshold,
-                             overlap_threshold, mask_threshold)
+                             overlap_threshold, mask_threshold, work_max_side)
         pan = res["panoptic"]
-        W, H = size
-        semantic = np.full((H, W), 255, np.uint8)
-        instance = np.zeros((H, W), np.uint16)
-        trees = sorted((s for s in res["segments"] if s["isthing"]), key=lambda s: -s["score"])
-        tree_masks = np.zeros((len(trees), H, W), bool)
-        tree_scores = np.zeros(len(trees), np.float32)
+        segs = res["segments"]
+        trees = sorted((s for s in segs if s["isthing"]), key=lambda s: -s["score"] * s["mask_prob"])
+        lut_inst = np.zeros(len(segs) + 1, np.uint16)
+        lut_sem = np.full(len(segs) + 1, 255, np.uint8)
+        for s in segs:
+            lut_sem[s["id"]] = s["label"]
         for k, s in enumerate(trees):
-            m = pan == s["id"]
-            tree_masks[k] = m
-            instance[m] = k + 1
-            semantic[m] = s["label"]
-            prob = _sigmoid(cv2.resize(msk[s["query"]].astype(np.float32), (W, H)))[m]
-            tree_scores[k] = s["score"] * (float(prob.mean()) if prob.size else 0.0)
-        stuff: dict[str, np.ndarray] = {}
-        for s in res["segments"]:
-            if s["isthing"]:
-                continue
-            m = pan == s["id"]
-            semantic[m] = s["label"]
-            name = self.classes[s["label"]] if s["label"] < len(self.classes) else str(s["label"])
-            stuff[name] = m
-        return SegmentationResult(tree_masks, tree_scores, stuff, semantic, instance, self.classes)
+            lut_inst[s["id"]] = k + 1
+        scores = np.array([s["score"] * s["mask_prob"] for s in trees], np.float32)
+        return SegmentationResult(instance=lut_inst[pan], semantic=lut_sem[pan], tree_scores=scores,
+                                  classes=self.classes, tree_class=self.tree_class)
 
 
 def __getattr__(name: str) -> Any:  # lazy re-export of the GAN predictors

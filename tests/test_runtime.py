@@ -38,6 +38,7 @@ def test_segmenter_predict_shapes(tiny_model):
     assert res.classes == ("sky", "ground", "other_vegetation", "tree", "other")
     for m in res.stuff_masks.values():
         assert m.shape == (48, 80) and m.dtype == bool
+    assert res.instance.max() == res.n_trees and res.tree_masks.sum(0).max() <= 1
     res2 = seg.predict(rgb, size=(40, 30), score_threshold=0.0, overlap_threshold=0.0)
     assert res2.semantic.shape == (30, 40) and res2.size == (40, 30)
     cls, msk = seg.raw(rgb)
@@ -68,6 +69,11 @@ def test_panoptic_merge_greedy():
     msk[1, :6] = 9.0
     out = panoptic_merge(cls, msk, (8, 8), score_threshold=0.3, overlap_threshold=0.9)  # 42/48
     assert [s["label"] for s in out["segments"]] == [3]
+    # merged at a working resolution, returned at the requested one
+    big = panoptic_merge(cls, msk, (800, 800), score_threshold=0.3, work_max_side=64)
+    small = panoptic_merge(cls, msk, (64, 64), score_threshold=0.3, work_max_side=None)
+    assert big["panoptic"].shape == (800, 800)
+    assert np.array_equal(big["panoptic"][::25, ::25][:, :], small["panoptic"][::2, ::2])
 
 
 def test_manifest_missing_and_no_shipped_model(tmp_path):
