@@ -39,6 +39,13 @@ app.command("bench")(_bench)
 # --- end measuring commands --------------------------------------------------------------------
 
 
+# --- depth maps (issue 5) ---------------------------------------------------------------------
+from .depth_cmd import depth as _depth, eval_depth as _eval_depth  # noqa: E402
+
+app.command("depth")(_depth)
+app.command("eval-depth")(_eval_depth)
+
+
 # --- training commands (training-only extra; imports inside the commands) ---------------------
 from .train_cmd import export as _export, train as _train  # noqa: E402
 

@@ -1,0 +1,76 @@
+"""``dbh depth`` (metric depth maps of photos) and ``dbh eval-depth`` (scores on a synth folder)."""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import List, Optional
+
+import typer
+
+
+def depth(
+    photos: List[Path] = typer.Argument(..., help="Photos."),
+    calib: Path = typer.Option(..., "--calib", "-c", help="cam.yaml"),
+    out_dir: Path = typer.Option(..., "--out-dir", "-o", help="Writes <photo stem>_depth.npy (float32 metres)."),
+    models_dir: Optional[Path] = typer.Option(None, "--models-dir", hidden=True),
+) -> None:
+    """Metric z-depth (metres, float32) at each photo's resolution from the depth network."""
+    from monodbh.calib import load_camera
+    from monodbh.calib.errors import MonodbhError
+    from monodbh.toolkit.depth_eval import photo_depth, write_depth
+    from monodbh.toolkit.pipeline import Session
+    try:
+        cam = load_camera(calib)
+        sess = Session(models_dir)
+    except MonodbhError as e:
+        typer.echo(f"error: {e}", err=True)
+        raise typer.Exit(1)
+    failed = 0
+    for p in photos:
+        try:
+            d, tm = photo_depth(str(p), cam, sess)
+            out = write_depth(out_dir, str(p), d)
+            typer.echo(f"{p}: {out} ({d.shape[1]}x{d.shape[0]}, median {float(__import__('numpy').median(d)):.2f} m, "
+                       f"{sum(tm.values()):.0f} ms)", err=True)
+        except MonodbhError as e:
+            failed += 1
+            typer.echo(f"error: {e}", err=True)
+    raise typer.Exit(1 if failed else 0)
+
+
+def eval_depth(
+    folder: Path = typer.Argument(..., exists=True, file_okay=False, help="A dbh synth folder."),
+    limit: Optional[int] = typer.Option(None, "--limit", "-n"),
+    models_dir: Optional[Path] = typer.Option(None, "--models-dir", hidden=True),
+) -> None:
+    """Score the depth network on a dbh synth folder: AbsRel, SqRel, RMSE, RMSE-log, log10,
+    delta < 1.25^k, in metric depth and median-scaled."""
+    import numpy as np
+    from rich.console import Console
+    from rich.table import Table
+
+    from monodbh.calib import Camera
+    from monodbh.models.synthetic.io import list_samples, read_sample
+    from monodbh.toolkit.depth_eval import DEPTH_METRIC_KEYS, depth_metrics, photo_depth
+    from monodbh.toolkit.pipeline import Session
+    sess = Session(models_dir)
+    idx = list_samples(folder)[: limit or None]
+    if not idx:
+        typer.echo(f"error: {folder}: no samples", err=True)
+        raise typer.Exit(1)
+    ms, times = [], []
+    for i in idx:
+        s = read_sample(folder, i)
+        m = s["meta"]
+        cam = Camera(np.array(m["K"]), np.array(m["dist"]), (m["width"], m["height"]))
+        d, tm = photo_depth(s["path"], cam, sess)
+        ms.append(depth_metrics(d, s["depth"]))
+        times.append(tm.get("depth", 0.0))
+    ms = [x for x in ms if x]
+    t = Table(title=f"depth network on {folder} ({len(ms)} photos)")
+    t.add_column("")
+    for k in DEPTH_METRIC_KEYS:
+        t.add_column(k, justify="right")
+    for prefix, name in (("", "metric"), ("ms_", "median-scaled")):
+        t.add_row(name, *[f"{np.mean([x[prefix + k] for x in ms]):.3f}" for k in DEPTH_METRIC_KEYS])
+    Console().print(t)
+    typer.echo(f"depth network median latency {np.median(times):.0f} ms", err=True)
