@@ -135,12 +135,10 @@ def redness_map(rgb: np.ndarray, offset: float = 30.0) -> np.ndarray:
     -------
     (H, W) float32 in [0, 1).
     """
-    R, G, B = cv2.split(rgb.astype(np.float32))
-    gb = cv2.subtract(G, B)
-    num = cv2.subtract(R, cv2.max(G, B))
-    num = cv2.scaleAdd(cv2.max(gb, 0.0), -0.5, num)
-    den = cv2.add(cv2.add(R, G), B)
-    den += offset
+    R, G, B = cv2.split(rgb)
+    num = cv2.subtract(R, cv2.max(G, B))                       # uint8, saturates at 0
+    num = cv2.addWeighted(num, 1.0, cv2.subtract(G, B), -0.5, 0.0, dtype=cv2.CV_32F)
+    den = cv2.add(cv2.addWeighted(R, 1.0, G, 1.0, float(offset), dtype=cv2.CV_32F), B, dtype=cv2.CV_32F)
     return cv2.max(cv2.divide(num, den), 0.0)
 
 
@@ -545,8 +543,7 @@ def detect_rope(rgb: np.ndarray, tree_mask: np.ndarray | None = None, *,
         tree_mask = np.asarray(tree_mask, bool)
         if tree_mask.shape != (H, W):
             raise ValueError(f"tree_mask shape {tree_mask.shape} != image {(H, W)}")
-    s = min(1.0, work_long_side / max(H, W))
-    small = rgb if s >= 1.0 else cv2.resize(rgb, (round(W * s), round(H * s)), interpolation=cv2.INTER_AREA)
+    small = _downscale(rgb, work_long_side)
     sx, sy = W / small.shape[1], H / small.shape[0]
     lap("resize")
 
@@ -614,6 +611,22 @@ def detect_rope(rgb: np.ndarray, tree_mask: np.ndarray | None = None, *,
     tm["total"] = round(1000 * (time.perf_counter() - t0), 2)
     det.timings_ms = tm
     return det
+
+
+def _downscale(rgb: np.ndarray, long_side: int) -> np.ndarray:
+    """Shrink so that the long side is at most ``long_side``.
+
+    Exact 2x area halvings (fast) while the image is at least twice too large, then one linear
+    step by a factor below 2 (a line 1 px wide after it still spans >= 1 sample).
+    """
+    img = rgb
+    while max(img.shape[:2]) >= 2 * long_side:
+        img = cv2.resize(img, (img.shape[1] // 2, img.shape[0] // 2), interpolation=cv2.INTER_AREA)
+    H, W = img.shape[:2]
+    if max(H, W) > long_side:
+        s = long_side / max(H, W)
+        img = cv2.resize(img, (round(W * s), round(H * s)), interpolation=cv2.INTER_LINEAR)
+    return img
 
 
 def _dist_to(c: RopeCandidate, px: float, py: float) -> float:
