@@ -81,8 +81,8 @@ def test_search_int8_refuses_and_keeps_best(tiny_onnx, tmp_path):
     assert res["chosen"] is None and not out.exists()
     res = search_int8(tiny_onnx, out, feeds, feeds, spec, metric_fn=metric, recipes=recipes,
                       tolerance=1.0, n_runs=2, verbose=False)
-    assert res["chosen"] in {"s8s8_qdq_all", "dyn"} and out.exists()
-    assert [r["model"] for r in res["rows"]] == ["fp32", "s8s8_qdq_all", "dyn"]
+    assert res["chosen"] in {DEFAULT_RECIPES[0].name, "dyn"} and out.exists()
+    assert [r["model"] for r in res["rows"]] == ["fp32", DEFAULT_RECIPES[0].name, "dyn"]
 
 
 def test_export_run_writes_report_and_ships(tmp_path):

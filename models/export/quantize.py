@@ -80,13 +80,14 @@ class QuantRecipe:
 
 #: Searched in order: most aggressive (fastest) first, most conservative last.
 DEFAULT_RECIPES: tuple[QuantRecipe, ...] = (
-    QuantRecipe("s8s8_qdq_all"),
     # U8S8 with 7-bit weights: x86 CPUs without VNNI run U8S8 with VPMADDUBSW, which can
     # saturate with full-range weights (onnxruntime quantisation docs); the export machine may
-    # have VNNI and would not see it, so the shipped U8S8 recipe is always reduce_range.
+    # have VNNI and would not see it, so the U8S8 recipes are always reduce_range.
     QuantRecipe("u8s8_qdq_all", activation_type="uint8", reduce_range=True),
-    QuantRecipe("s8s8_qdq_conv_gemm", op_types=("Conv", "Gemm", "MatMul"),
-                exclude_name_patterns=("attn",)),
+    QuantRecipe("u8s8_qdq_conv_gemm", activation_type="uint8", reduce_range=True,
+                op_types=("Conv", "Gemm", "MatMul"), exclude_name_patterns=("attn",)),
+    QuantRecipe("u8s8_qdq_conv", activation_type="uint8", reduce_range=True, op_types=("Conv",)),
+    QuantRecipe("s8s8_qdq_all"),
     QuantRecipe("s8s8_qdq_conv_percentile", op_types=("Conv",), calibrate_method="percentile",
                 extra_options={"CalibPercentile": 99.99}),
     QuantRecipe("s8s8_conv+dynamic_matmul", mode="static+dynamic", op_types=("Conv",)),
@@ -141,9 +142,10 @@ class _Reader:
         self.i = 0
 
 
-def _nodes_excluded(model: onnx.ModelProto, recipe: QuantRecipe) -> list[str]:
+def _nodes_excluded(model: onnx.ModelProto, recipe: QuantRecipe,
+                    extra_patterns: Sequence[str] = ()) -> list[str]:
     out = []
-    pats = [re.compile(p) for p in recipe.exclude_name_patterns]
+    pats = [re.compile(p) for p in (*recipe.exclude_name_patterns, *extra_patterns)]
     for node in model.graph.node:
         if node.op_type in recipe.exclude_op_types or any(p.search(node.name) for p in pats):
             out.append(node.name)
@@ -158,6 +160,12 @@ def quantize_int8(fp32_path: str | os.PathLike, int8_path: str | os.PathLike,
     ``quant_pre_process`` first, then static QDQ (per-channel by default) calibrated on
     ``calibration_inputs`` (list of feeds), or dynamic quantisation, per ``options``
     (default ``DEFAULT_RECIPES[0]``). The spec metadata is re-embedded.
+
+    Nodes kept float: op types ``options.exclude_op_types``, names matching
+    ``options.exclude_name_patterns`` or the kind's ``spec.extra["quant_float_patterns"]``
+    (regular expressions on node names of the exported graph, e.g. attention internals).
+    Note that onnxruntime fuses ``DQ -> op -> Q`` into an int8 kernel at load time when both
+    neighbours are quantised, so keeping a region float means excluding its boundary nodes too.
     """
     from onnxruntime.quantization import QuantFormat, quantize_dynamic, quantize_static
 
@@ -167,7 +175,8 @@ def quantize_int8(fp32_path: str | os.PathLike, int8_path: str | os.PathLike,
     with tempfile.TemporaryDirectory(dir=int8_path.parent) as td:
         pre = preprocess_model(fp32_path, Path(td) / "pre.onnx")
         model = onnx.load(str(pre))
-        exclude = _nodes_excluded(model, recipe)
+        exclude = _nodes_excluded(model, recipe,
+                                  (spec.extra.get("quant_float_patterns", ()) if spec else ()))
         extra = dict(recipe.extra_options)
         if recipe.mode in ("static", "static+dynamic"):
             if not calibration_inputs:

@@ -305,7 +305,12 @@ def segmenter_spec(size: str) -> ModelSpec:
         classes=CLASSES, metric="roped_iou", higher_is_better=True,
         extra={"no_object": NO_OBJECT, "tree_class": TREE_CLASS, "thing_classes": [TREE_CLASS],
                "stuff_classes": [c for c in range(len(CLASSES)) if c != TREE_CLASS],
-               "num_queries": Q, "mask_stride": 4},
+               "num_queries": Q, "mask_stride": 4,
+               # int8 export: keep attention scores/softmax/additive mask and the mask->bias
+               # construction float (a -1e4 bias in an 8-bit range wipes out the scores)
+               "quant_float_patterns": [r"attn/MatMul(_1)?$", r"attn/Add$", r"attn/Softmax$",
+                                        r"attn/Mul$", r"^/(Less|Cast|ReduceMin|Sub)(_\d+)?$",
+                                        r"^/Mul_\d+$"]},
     )
 
 
