@@ -31,7 +31,7 @@ from scipy.optimize import linear_sum_assignment
 from torch.nn import functional as F
 
 from monodbh.models.modeling.registry import ModelSpec, build, get_spec
-from monodbh.models.modeling.segmenter import CLASSES, NO_OBJECT, TREE_CLASS
+from monodbh.models.modeling.segmenter import CLASSES, TREE_CLASS
 from monodbh.models.runtime import panoptic_merge, preprocess_image
 from monodbh.models.training.common import (AugmentConfig, DataSource, GeneratorSource,
                                             augment, batch_indices, make_source,
