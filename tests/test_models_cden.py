@@ -126,3 +126,23 @@ def test_train_depth_no_gan(tmp_path):
                     threads=1, lambda_gan=0.0, verbose=False)
     assert r["step"] == 1
     assert "disc" not in torch.load(tmp_path / "r" / "checkpoint.pt", weights_only=False)["extra"]
+
+
+def test_cden_export_hooks():
+    from monodbh.models.modeling import get_spec
+    from monodbh.models.training.common import ListSource, calibration_inputs, evaluate_kind
+
+    spec = get_spec("cden", "tiny")
+    src = ListSource([_fake_sample(i) for i in range(3)])
+    feeds = calibration_inputs("cden", 2, 0, spec, src)
+    assert len(feeds) == 2 and feeds[0]["image"].shape == (1, 3, 64, 64)
+    assert feeds[0]["mask"].shape == (1, 1, 64, 64)
+    g = build("cden", "tiny").eval()
+
+    def predict(f):
+        with torch.no_grad():
+            t = g(torch.from_numpy(f["image"]), torch.from_numpy(f["mask"]))
+        return {"depth_code": t.numpy()}
+
+    m = evaluate_kind("cden", predict, 2, 0, spec, src)
+    assert spec.metric == "delta1" and 0.0 <= m["delta1"] <= 1.0 and "ms_absrel" in m

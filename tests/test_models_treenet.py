@@ -111,3 +111,21 @@ def test_train_trees_modes(tmp_path, mode):
     assert r["step"] == 1
     extra = torch.load(tmp_path / mode / "checkpoint.pt", weights_only=False)["extra"]
     assert ("F" in extra) == (mode == "cycle")
+
+
+def test_treenet_export_hooks():
+    from monodbh.models.modeling import get_spec
+    from monodbh.models.training.common import ListSource, calibration_inputs, evaluate_kind
+
+    spec = get_spec("treenet", "tiny")
+    src = ListSource([fake_tree_sample(i) for i in range(2)])
+    feeds = calibration_inputs("treenet", 3, 0, spec, src)
+    assert len(feeds) == 3 and feeds[0]["crop"].shape == (1, 4, 64, 64)
+    g = build("treenet", "tiny").eval()
+
+    def predict(f):
+        with torch.no_grad():
+            return {"silhouette": g(torch.from_numpy(f["crop"])).numpy()}
+
+    m = evaluate_kind("treenet", predict, 2, 0, spec, src)
+    assert spec.metric == "g_acc" and 0.0 <= m["g_acc"] <= 1.0 and "front_absrel" in m

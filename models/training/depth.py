@@ -37,8 +37,9 @@ from monodbh.models.training.common import (AugmentConfig, DataSource, Generator
                                             register_calibration, register_eval, sample_rng,
                                             select_device, train_loop)
 
-__all__ = ["DepthTrainConfig", "undistort_sample", "depth_example", "depth_metrics", "depth_losses", "train_depth",
-           "default_source"]
+__all__ = ["DepthTrainConfig", "undistort_sample", "depth_example", "depth_metrics",
+           "depth_losses", "silog_loss", "gradient_loss", "train_depth", "default_source",
+           "pick_indices", "calibration_feeds", "evaluate"]
 
 #: Default render size of generator samples (landscape 4:3; ``portrait_frac`` of them rotated).
 RENDER_SIZE = (256, 192)
@@ -463,6 +464,14 @@ def _eval_source(data: Any, seed: int) -> DataSource:
     return GeneratorSource(seed + 20_000, (512, 384), {"distortion": False})
 
 
+def pick_indices(src: DataSource, n: int, seed: int) -> list[int]:
+    """``n`` sample indices of ``src`` chosen by ``seed`` (calibration and evaluation differ)."""
+    if src.n:
+        perm = np.random.default_rng([seed, 13]).permutation(src.n)
+        return [int(perm[i % src.n]) for i in range(n)]
+    return [seed * 100_003 % 2**30 + i for i in range(n)]
+
+
 @register_calibration("cden")
 def calibration_feeds(n: int, seed: int, spec: Any, data: DataSource | None = None
                       ) -> list[dict[str, np.ndarray]]:
@@ -470,7 +479,7 @@ def calibration_feeds(n: int, seed: int, spec: Any, data: DataSource | None = No
     src = _eval_source(data, seed)
     S = spec.inputs[0].shape[-1]
     feeds = []
-    for i in range(n):
+    for i in pick_indices(src, n, seed):
         ex = depth_example(src.get(i), S)
         feeds.append({"image": ex["image"][None], "mask": ex["mask"][None]})
     return feeds
@@ -483,7 +492,7 @@ def evaluate(predict: Callable[[dict[str, np.ndarray]], dict[str, np.ndarray]], 
     src = _eval_source(data, seed)
     S = spec.inputs[0].shape[-1]
     ms = []
-    for i in range(n):
+    for i in pick_indices(src, n, seed):
         ex = depth_example(src.get(i), S)
         t = predict({"image": ex["image"][None], "mask": ex["mask"][None]})["depth_code"][0, 0]
         ms.append(depth_metrics(depth_code_to_metric(t, ex["fx_net"], S), ex["depth"][0], ex["valid"][0]))

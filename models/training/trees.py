@@ -40,7 +40,7 @@ from monodbh.models.training.common import (AugmentConfig, DataSource, Generator
                                             batch_indices, make_source, photometric,
                                             register_calibration, register_eval, sample_rng,
                                             select_device, train_loop)
-from monodbh.models.training.depth import undistort_sample
+from monodbh.models.training.depth import pick_indices, undistort_sample
 
 __all__ = ["TreeTrainConfig", "stem_point_cam", "choose_crop", "tree_example", "tree_metrics",
            "train_trees", "RENDER_SIZE"]
@@ -75,7 +75,8 @@ class TreeTrainConfig:
     center_jitter: float = 0.05    #: crop centre jitter, fraction of the trunk width
     mask_morph: float = 0.3        #: probability of a 1-px erode/dilate of the input mask
     hflip: float = 0.5
-    val_n: int = 64
+    val_n: int = 64                #: validation samples ...
+    val_crops_per_sample: int = 4  #: ... and crops cut from each (random trunk/height, k)
     val_every: int = 500
     ckpt_every: int = 100
     log_every: int = 10
@@ -425,8 +426,9 @@ def train_trees(run_dir: str, steps: int = 20000, data: Any = None, resume: bool
 
     def validate_fn() -> dict[str, float]:
         if not val_cache:
-            val_cache.extend(_examples_from(vsrc, 0, len(val_idx), cfg.seed + 1, cfg, P, None,
-                                            indices=val_idx))
+            vps = max(1, int(cfg.val_crops_per_sample))
+            val_cache.extend(_examples_from(vsrc, 0, len(val_idx) * vps, cfg.seed + 1, cfg, P, None,
+                                            per_sample=vps, indices=val_idx))
         ms = []
         for k0 in range(0, len(val_cache), 16):
             items = val_cache[k0:k0 + 16]
@@ -461,8 +463,9 @@ def calibration_feeds(n: int, seed: int, spec: Any, data: DataSource | None = No
                       ) -> list[dict[str, np.ndarray]]:
     """``n`` crop feeds (random ``k`` in the training range) for int8 calibration."""
     P = spec.inputs[0].shape[-1]
-    exs = _examples_from(_eval_source(data, seed), 0, n, seed, TreeTrainConfig(center_jitter=0.0),
-                         P, None, per_sample=2)
+    src = _eval_source(data, seed)
+    exs = _examples_from(src, 0, n, seed, TreeTrainConfig(center_jitter=0.0), P, None,
+                         per_sample=2, indices=pick_indices(src, (n + 1) // 2, seed))
     return [{"crop": e["crop"][None]} for e in exs]
 
 
@@ -474,6 +477,7 @@ def evaluate(predict: Callable[[dict[str, np.ndarray]], dict[str, np.ndarray]], 
 
     P = spec.inputs[0].shape[-1]
     cfg = TreeTrainConfig(center_jitter=0.0, p_rope=0.5)
-    exs = _examples_from(_eval_source(data, seed), 0, n, seed, cfg, P, K_INFER)
+    src = _eval_source(data, seed)
+    exs = _examples_from(src, 0, n, seed, cfg, P, K_INFER, indices=pick_indices(src, n, seed))
     ms = [tree_metrics(predict({"crop": e["crop"][None]})["silhouette"][0], e) for e in exs]
     return _mean(ms)
