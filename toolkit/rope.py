@@ -76,6 +76,11 @@ class RopeCandidate:
     clutter: float = field(default=0.0, repr=False)
     density: float = field(default=0.0, repr=False)
     edges: tuple = field(default=(0.0, 0.0), repr=False)
+    step: float = field(default=0.0, repr=False)
+    red: float = field(default=0.0, repr=False)
+    red_area: float = field(default=0.0, repr=False)
+    peaky: float = field(default=0.0, repr=False)
+    corr: float = field(default=0.0, repr=False)
 
     def as_dict(self) -> dict:
         """JSON-friendly summary."""
@@ -172,10 +177,10 @@ def line_contrast(F: np.ndarray, ds: tuple[int, ...] = (2, 3), sigma_x: float = 
 
 # ----------------------------------------------------------------------------- pieces
 
-_SEG_KEYS = ("cx", "cy", "theta", "length", "thick", "contrast", "hue", "area", "level")
+_SEG_KEYS = ("cx", "cy", "theta", "length", "thick", "contrast", "hue", "red", "area", "level")
 
 
-def _segments(R: np.ndarray, rgb: np.ndarray, thr: float, min_len: float, level: int):
+def _segments(R: np.ndarray, F: np.ndarray, rgb: np.ndarray, thr: float, min_len: float, level: int):
     """Components of ``R > thr`` described by moments, in level-0 pixels.
 
     Returns a dict of (K,) arrays (see ``_SEG_KEYS``) or None.
@@ -218,9 +223,11 @@ def _segments(R: np.ndarray, rgb: np.ndarray, thr: float, min_len: float, level:
     if not ok.any():
         return None
     px = rgb[ys, xs].astype(np.float32)
-    hue = (px[:, 1] - px[:, 2]) / (px[:, 0] + 8.0)                  # orange-ness (G - B) / R
+    hue = (px[:, 1] - px[:, 2]) / (px[:, 0] + 8.0)      # orange-ness (G - B) / R, weighted by contrast
+    sw = np.bincount(li, wts, k)
     seg = dict(cx=cx * f, cy=cy * f, theta=theta, length=length * f,
-               thick=thick * f, contrast=np.bincount(li, wts, k) / cnt, hue=np.bincount(li, hue, k) / cnt,
+               thick=thick * f, contrast=sw / cnt, hue=np.bincount(li, hue * wts ** 3, k) / np.bincount(li, wts ** 3, k),
+               red=np.bincount(li, F[ys, xs] * wts, k) / sw,
                area=cnt * f * f, level=np.full(k, level))
     return {kk: v[ok] for kk, v in seg.items()}
 
@@ -252,7 +259,8 @@ def _link(seg: dict) -> list[list[int]]:
         tol = 1.0 + 0.6 * tmax + 0.1 * gpos
         dth = np.abs(np.arctan(slope[:, None]) - np.arctan(slope[None, :]))
         ok = ((gap > -0.3 * lmin - 2) & (gap < 0.8 * lsum + 4) & (err < tol) & (tmax < 2.5 * tmin + 1.5)
-              & (dth < np.deg2rad(40)) & (np.abs(seg["hue"][:, None] - seg["hue"][None, :]) < 0.15))
+              & (dth < np.deg2rad(40)) & (np.abs(seg["hue"][:, None] - seg["hue"][None, :]) < 0.15)
+              & (seg["level"][:, None] == seg["level"][None, :]))
         np.fill_diagonal(ok, False)
         ii, jj = np.nonzero(ok)
         if len(ii):
@@ -366,7 +374,8 @@ def _make_candidate(seg: dict, idx: list[int]) -> RopeCandidate:
         center_xy=(float(xc), float(yc)), direction=(float(d[0]), float(d[1])),
         length_px=arc, thickness_px=area / max(covered, 1.0),
         contrast=float(np.average(seg["contrast"][idx], weights=a)), coverage=min(1.0, covered / arc),
-        hue=float(np.average(seg["hue"][idx], weights=a)), polyline=np.stack([xs, ys], 1).astype(np.float32),
+        hue=float(np.average(seg["hue"][idx], weights=a)), red=float(np.average(seg["red"][idx], weights=a)),
+        polyline=np.stack([xs, ys], 1).astype(np.float32),
         level=int(np.round(np.average(seg["level"][idx], weights=a))), resid=resid, members=len(idx))
 
 
@@ -472,39 +481,127 @@ def _edges(c: RopeCandidate, gray_integral: np.ndarray) -> None:
     c.edges = (out[0], out[1])
 
 
-#: Weights of the log-linear candidate score: ``score = exp(sum w_k * feature_k)``
-#: (features: :func:`candidate_features`).
-SCORE_WEIGHTS = dict(log_contrast=1.0, log_length=0.5, log_density=-0.3, coverage=2.0, shape=2.0, hue=-10.0,
-                     edge_min=1.0, edge_max=2.0, log_clutter=-1.0, members=-0.3, coarse=-1.0, resid=-1.0)
+def _continuity(c: RopeCandidate, iis: list[np.ndarray]) -> None:
+    """Is the surface just above the band the same as just below it (one trunk face)?
+
+    Mean column profiles (grey, and red minus blue) of a strip above and a strip below the band,
+    within its x range, are compared. A rope on a trunk has the same bark, lit the same way
+    (similar means, correlated profiles); a horizon or a ground edge running between two trunks
+    has sky or far trees above and ground below. ``step``: largest relative difference of means;
+    ``corr``: correlation of the grey profiles (0 when too few columns).
+    """
+    L = c.length_px
+    T = max(c.thickness_px, 1.0)
+    p = c.polyline
+    H, W = iis[0].shape[0] - 1, iis[0].shape[1] - 1
+    x0 = int(round(p[0, 0] + 0.15 * L))
+    x1 = int(round(p[-1, 0] - 0.15 * L))
+    hs = int(min(max(0.25 * L, 3), 60))
+    inner = p[(p[:, 0] >= x0) & (p[:, 0] <= x1), 1]
+    if x1 - x0 < 3 or len(inner) == 0:
+        c.step, c.corr = 0.5, 0.0
+        return
+    ya1 = int(round(inner.min() - T - 1))
+    yb0 = int(round(inner.max() + T + 1))
+    ya0, yb1 = ya1 - hs, yb0 + hs
+    if ya0 < 0 or yb1 > H or x0 < 0 or x1 >= W:
+        c.step, c.corr = 0.5, 0.0
+        return
+    steps, prof = [], []
+    for k, II in enumerate(iis):
+        a = np.diff(II[ya1, x0:x1 + 2] - II[ya0, x0:x1 + 2]) / hs
+        b = np.diff(II[yb1, x0:x1 + 2] - II[yb0, x0:x1 + 2]) / hs
+        ma, mb = float(a.mean()), float(b.mean())
+        steps.append(abs(ma - mb) / (20.0 + (0.5 * (abs(ma) + abs(mb)) if k == 0 else 0.0)))
+        if k == 0:
+            prof = (a, b)
+    c.step = float(max(steps))
+    a, b = prof
+    sa, sb = a.std(), b.std()
+    c.corr = float(np.mean((a - a.mean()) * (b - b.mean())) / (sa * sb)) if sa > 1.0 and sb > 1.0 else 0.0
+
+
+def _red_area(c: RopeCandidate, F: np.ndarray) -> None:
+    """Fraction of the surroundings (band excluded) about as red as the band: red leaves, a jacket
+    or a blob light up around a "band" found inside them; bark around a rope does not."""
+    H, W = F.shape
+    p, L, T = c.polyline, c.length_px, max(c.thickness_px, 1.0)
+    x0, x1 = int(max(0, p[0, 0] - 0.3 * L)), int(min(W, p[-1, 0] + 0.3 * L + 1))
+    y0, y1 = int(max(0, p[:, 1].min() - 0.5 * L)), int(min(H, p[:, 1].max() + 0.5 * L + 1))
+    st = max(1, int(L / 40))
+    sub = F[y0:y1:st, x0:x1:st]
+    if sub.size == 0:
+        c.red_area = 0.0
+        return
+    xs = np.arange(x0, x1, st)
+    yc = np.interp(xs, p[:, 0], p[:, 1])
+    band = np.abs(np.arange(y0, y1, st)[:, None] - yc[None, :]) <= T + 2
+    v = sub[~band]
+    c.red_area = float(np.mean(v > 0.5 * c.red)) if v.size else 0.0
+
+
+def _uniformity(c: RopeCandidate, Rs: list[np.ndarray]) -> None:
+    """How even the line contrast is along the band: ``peaky`` = log(90th percentile / median)
+    of the per-column maxima. A rope is even; a row of red dots (leaves, berries) is peaky."""
+    lv = min(c.level, len(Rs) - 1)
+    R = Rs[lv]
+    f = 2.0 ** lv
+    H, W = R.shape
+    p = c.polyline / f
+    xs = np.arange(int(np.ceil(p[0, 0])), int(np.floor(p[-1, 0])) + 1)
+    xs = xs[(xs >= 0) & (xs < W)]
+    if len(xs) < 3:
+        c.peaky = 0.0
+        return
+    yc = np.interp(xs, p[:, 0], p[:, 1])
+    r = int(np.ceil(0.5 * c.thickness_px / f)) + 1
+    rows = np.clip(np.round(yc)[None, :].astype(int) + np.arange(-r, r + 1)[:, None], 0, H - 1)
+    v = R[rows, xs[None, :]].max(0)
+    q50, q90 = np.percentile(v, [50, 90])
+    c.peaky = float(np.log((q90 + 0.003) / (q50 + 0.003)))
+
+
+#: Weights of the candidate score (log-odds): ``score = bias + sum_k w_k * feature_k``
+#: (features: :func:`candidate_features`); fitted on synthetic photos (``bench_rope --fit``).
+SCORE_WEIGHTS = dict(bias=-0.18, log_contrast=2.72, log_length=0.51, log_density=-0.29, coverage=3.07,
+                     shape=1.65, hue=-26.6, edge_min=3.04, edge_max=2.60, log_clutter=-1.33, members=-0.25,
+                     coarse=-1.42, resid=-0.82, step=-2.11, corr=1.13, red_area=-5.0, peaky=-2.0)
 
 
 def candidate_features(c: RopeCandidate) -> dict:
     """Features of a candidate (working-image pixels) entering its score."""
     T = max(c.thickness_px, 0.7)
     return dict(
-        log_contrast=float(np.log(c.contrast)), log_length=float(np.log(c.length_px)),
+        log_contrast=float(np.log(min(c.contrast, 0.08))), log_length=float(np.log(c.length_px)),
         log_density=float(np.log(c.density + 0.002)), coverage=float(c.coverage),
         shape=float(np.clip((c.length_px / T - 3.0) / 10.0, 0.0, 1.0)), hue=float(max(0.0, c.hue - 0.15)),
         edge_min=float(min(c.edges)), edge_max=float(max(c.edges)), log_clutter=float(np.log1p(c.clutter)),
-        members=float(c.members - 1), coarse=float(c.level == 2), resid=float(c.resid / T))
+        members=float(c.members - 1), coarse=float(c.level == 2), resid=float(c.resid / T),
+        step=float(min(c.step, 1.0)), corr=float(c.corr), red_area=float(c.red_area),
+        peaky=float(c.peaky))
 
 
 def _score(c: RopeCandidate, weights: dict | None = None) -> float:
+    """Log-odds that the candidate is the rope: ``bias + sum_k w_k * feature_k``."""
     w = SCORE_WEIGHTS if weights is None else weights
     c.features = candidate_features(c)
     if c.features["shape"] <= 0:
-        return 0.0
-    return float(np.exp(sum(w[k] * c.features[k] for k in w)))
+        return -np.inf
+    return float(w.get("bias", 0.0) + sum(w[k] * c.features[k] for k in c.features if k in w))
 
 
 # ----------------------------------------------------------------------------- detector
 
+_PIECE_THR = 0.012      # line-contrast level of the pixels forming pieces
+_SIGMA_X = 2.0          # blur along the line before the contrast (pixels of each level)
+
+
 def detect_rope(rgb: np.ndarray, tree_mask: np.ndarray | None = None, *,
                 pick_xy: tuple[float, float] | None = None,
                 height_check: Callable[[RopeCandidate], bool] | None = None,
-                work_long_side: int = 1600, min_contrast: float = 0.02, min_score: float = 0.0,
-                ambiguity_ratio: float = 0.75, max_candidates: int = 60, max_segments: int = 400,
-                weights: dict | None = None) -> RopeDetection:
+                work_long_side: int = 1600, min_contrast: float = 0.015, min_score: float = 0.0,
+                ambiguity_margin: float = 1.0, nearer_ratio: float = 1.6, max_candidates: int = 100,
+                max_segments: int = 400, weights: dict | None = None) -> RopeDetection:
     """Find the red rope tied around a trunk.
 
     Parameters
@@ -517,9 +614,13 @@ def detect_rope(rgb: np.ndarray, tree_mask: np.ndarray | None = None, *,
         1.3 m above the ground?"); candidates for which it returns False are dropped.
     work_long_side : candidates are searched on a copy downscaled to this long side.
     min_contrast : minimum mean red-ness contrast of a band.
-    min_score : the best candidate must score above this to be a rope.
-    ambiguity_ratio : a second candidate scoring at least this fraction of the best makes the
-        result ambiguous (``found=False``, ``ambiguous=True``) unless ``pick_xy`` is given.
+    min_score : a candidate is a rope when its score (a log-odds) is above this.
+    ambiguity_margin : rope candidates on other bands scoring within this margin of the best
+        (log-odds units) are rivals. Of the best and its rivals, one whose band is at least
+        ``nearer_ratio`` times longer than each other's (a larger, nearer roped trunk) is taken;
+        otherwise the result is ambiguous (``found=False``, ``ambiguous=True``) unless ``pick_xy``
+        is given.
+    nearer_ratio : see ``ambiguity_margin``.
     max_candidates : how many bands (by the cheap band score) get the full score.
     max_segments : at most this many line pieces (the most contrasted) are linked into bands.
     weights : override :data:`SCORE_WEIGHTS`.
@@ -547,13 +648,16 @@ def detect_rope(rgb: np.ndarray, tree_mask: np.ndarray | None = None, *,
     sx, sy = W / small.shape[1], H / small.shape[0]
     lap("resize")
 
-    thr = 0.6 * min_contrast
-    segs, img, counts = [], small, None
+    thr = _PIECE_THR
+    segs, img, counts, Rs = [], small, None, []
     for level in range(3):
-        R = line_contrast(redness_map(img))
+        F = redness_map(img)
+        R = line_contrast(F, sigma_x=_SIGMA_X)
+        Rs.append(R)
         if level == 0:
             counts = _Counts(R > thr)
-        sg = _segments(R, img, thr=thr, min_len=5.0, level=level)
+            F0 = F
+        sg = _segments(R, F, img, thr=thr, min_len=5.0, level=level)
         if sg is not None:
             segs.append(sg)
         if level < 2 and min(img.shape[:2]) >= 64:
@@ -565,7 +669,7 @@ def detect_rope(rgb: np.ndarray, tree_mask: np.ndarray | None = None, *,
     if not segs:
         return none
     seg = {k: np.concatenate([g[k] for g in segs]) for k in _SEG_KEYS}
-    keep = (seg["contrast"] >= 0.5 * min_contrast) & ((seg["length"] >= 10) | (seg["contrast"] >= min_contrast))
+    keep = (seg["contrast"] >= min_contrast) | (seg["length"] >= 10)
     seg = {k: v[keep] for k, v in seg.items()}
     if len(seg["cx"]) > max_segments:
         top = np.argsort(-seg["contrast"] * np.sqrt(seg["length"]))[:max_segments]
@@ -573,10 +677,15 @@ def detect_rope(rgb: np.ndarray, tree_mask: np.ndarray | None = None, *,
     runs = _runs(seg, _link(seg), min_contrast)[:max_candidates]
     cands = [_make_candidate(seg, idx) for idx in runs]
     lap("bands")
-    gray_ii = cv2.integral(cv2.cvtColor(small, cv2.COLOR_RGB2GRAY), sdepth=cv2.CV_32S).astype(np.float32)
+    gray_ii = cv2.integral(cv2.cvtColor(small, cv2.COLOR_RGB2GRAY), sdepth=cv2.CV_32S)
+    rb = cv2.addWeighted(small[..., 0], 0.5, small[..., 2], -0.5, 128.0)       # (R - B) / 2 + 128, uint8
+    rb_ii = cv2.integral(rb, sdepth=cv2.CV_32S)
     for c in cands:
         _clutter(c, counts)
         _edges(c, gray_ii)
+        _continuity(c, [gray_ii, rb_ii])
+        _red_area(c, F0)
+        _uniformity(c, Rs)
         c.score = _score(c, weights)
     # to full-resolution pixels
     for c in cands:
@@ -589,22 +698,34 @@ def detect_rope(rgb: np.ndarray, tree_mask: np.ndarray | None = None, *,
             _apply_tree_mask(c, tree_mask)
     if height_check is not None:
         cands = [c for c in cands if height_check(c)]
-    cands = [c for c in cands if c.score > 0]
+    cands = [c for c in cands if np.isfinite(c.score)]
     cands.sort(key=lambda c: -c.score)
     cands = _dedupe(cands)
     lap("score")
-    if not cands or (pick_xy is None and cands[0].score <= min_score):
-        none.candidates = cands
-        return none
-    best = cands[0]
     if pick_xy is not None:
+        if not cands:
+            return none
         px, py = pick_xy
-        best = min(cands[:20], key=lambda c: _dist_to(c, px, py))
-    elif len(cands) > 1 and cands[1].score >= ambiguity_ratio * best.score:
-        c1, c2 = cands[0], cands[1]
-        msg = (f"two rope candidates at ({c1.center_xy[0]:.0f},{c1.center_xy[1]:.0f}) and "
-               f"({c2.center_xy[0]:.0f},{c2.center_xy[1]:.0f}); choose one with --pick X,Y")
-        return RopeDetection(False, msg, candidates=cands, ambiguous=True, timings_ms=tm)
+        near = [c for c in cands[:30] if c.score > min_score - 3.0] or cands[:30]
+        best = min(near, key=lambda c: _dist_to(c, px, py))
+    else:
+        ropes = [c for c in cands if c.score > min_score]
+        if not ropes:
+            none.candidates = cands
+            return none
+        best = ropes[0]
+        rivals = [c for c in ropes[1:] if c.score >= best.score - ambiguity_margin]
+        if rivals:
+            group = [best] + rivals
+            longest = max(group, key=lambda c: c.length_px)
+            if all(longest.length_px >= nearer_ratio * c.length_px for c in group if c is not longest):
+                best = longest
+            else:
+                c1, c2 = group[0], group[1]
+                msg = (f"two rope candidates at ({c1.center_xy[0]:.0f},{c1.center_xy[1]:.0f}) and "
+                       f"({c2.center_xy[0]:.0f},{c2.center_xy[1]:.0f}) (e.g. two roped trees); "
+                       f"choose one with --pick X,Y")
+                return RopeDetection(False, msg, candidates=cands, ambiguous=True, timings_ms=tm)
     det = _refine(rgb, best, tree_mask)
     det.candidates = cands
     lap("refine")
@@ -645,7 +766,7 @@ def _apply_tree_mask(c: RopeCandidate, tree_mask: np.ndarray) -> None:
         c.span = float(np.clip((min(r, p[-1, 0]) - max(l, p[0, 0])) / max(r - l + 1, 1), 0.0, 1.0))
     else:
         c.span = 0.0
-    c.score *= (0.2 + 0.8 * on) * (0.3 + 0.7 * c.span)
+    c.score += float(np.log((0.2 + 0.8 * on) * (0.3 + 0.7 * c.span)))
 
 
 def _dedupe(cands: list[RopeCandidate], key: str = "score") -> list[RopeCandidate]:
