@@ -31,9 +31,30 @@ def perception_from_ground_truth(sample: dict, camera, *, use_silhouette: bool =
     # band direction: principal axis of the rope pixels
     w, V = np.linalg.eigh(np.cov((P - c).T))
     d = V[:, -1]
-    # thickness: pixels / length
-    length = max(1.0, 4 * np.sqrt(max(w[-1], 1e-9)))
-    half = max(0.5, 0.5 * len(xs) / length)
+    rope_meta = meta.get("rope") or {}
+    tree_meta = meta["trees"][tid - 1]
+    if "center_world" in rope_meta and "axis_world" in tree_meta:
+        # exact: project the stem axis point at 1.3 m and the axis direction
+        import cv2
+        R = np.asarray(meta["R_world_from_cam"])
+        t = np.asarray(meta["t_world_from_cam"])
+        A = np.asarray(rope_meta["center_world"])
+        ax = np.asarray(tree_meta["axis_world"])
+        pc = (np.stack([A, A + 0.1 * ax]) - t) @ R
+        uv, _ = cv2.projectPoints(pc, np.zeros(3), np.zeros(3), np.asarray(meta["K"], float),
+                                  np.asarray(meta["dist"], float))
+        uv = uv.reshape(2, 2)
+        along = uv[1] - uv[0]
+        along /= np.linalg.norm(along) + 1e-12
+        c = uv[0]
+        d = np.array([-along[1], along[0]])
+    # thickness from the tube diameter and the stem distance
+    if rope_meta.get("tube_diameter_m") and "bh_point_cam" in tree_meta:
+        half = 0.5 * rope_meta["tube_diameter_m"] * float(meta["K"][0][0]) / max(tree_meta["bh_point_cam"][2], 0.1)
+        half = max(0.5, half)
+    else:
+        length = max(1.0, 4 * np.sqrt(max(w[-1], 1e-9)))
+        half = max(0.5, 0.5 * len(xs) / length)
     # put the centre on the stem mid-line: middle of the tree run along the band through c
     s = np.arange(-2000, 2000, 0.5)
     q = c[None] + s[:, None] * d[None]

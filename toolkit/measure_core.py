@@ -139,6 +139,13 @@ def measure_from_perception(perc: Perception, photo: str = "", *, timings: dict 
     cam = perc.camera
     gray = perc.rgb.astype(np.float32).mean(2)
     edges = trunk_edges(gray, perc.tree_mask, perc.rope_xy, perc.rope_dir, rope_half_px=perc.rope_half_px)
+    if edges:
+        # second pass: sample across the stem as found (the rope band may be tilted or arced)
+        across = np.array([edges.along[1], -edges.along[0]])
+        mid0 = 0.5 * (edges.left_xy + edges.right_xy)
+        e2 = trunk_edges(gray, perc.tree_mask, mid0, across, rope_half_px=perc.rope_half_px)
+        if e2 and abs(e2.width_px / edges.width_px - 1) < 0.5:
+            edges = e2
     if not edges:
         res.error = f"cannot measure the roped stem: {edges.reason}"
         return res
