@@ -136,7 +136,7 @@ class Tree:
     def axis_point(self, s: float) -> np.ndarray:
         return self.base + s * self.axis
 
-    def perimeter_m(self, s: float = BREAST_HEIGHT_M, n: int = 2048, segments: int | None = None) -> float:
+    def perimeter_m(self, s: float = BREAST_HEIGHT_M, n: int = 1024, segments: int | None = None) -> float:
         """Perimeter of the cross-section at ``s``: the continuous curve (``segments=None``)
         or the rendered polygon with ``segments`` vertices."""
         m = n if segments is None else segments
