@@ -134,9 +134,7 @@ def test_distractors_do_not_fire(no_rope):
     img = no_rope["rgb"].copy()
     cv2.circle(img, (200, 300), 28, (170, 25, 20), -1, cv2.LINE_AA)                # red blob (jacket, leaves)
     cv2.rectangle(img, (372, 250), (382, 330), (160, 30, 25), -1, cv2.LINE_AA)       # vertical paint mark
-    rng = np.random.default_rng(0)                                                    # a cluster of red leaves
-    for x, y in rng.normal((480, 410), 18, (25, 2)).astype(int):
-        cv2.circle(img, (int(x), int(y)), int(rng.integers(2, 5)), (150, 20, 20), -1)
+    cv2.ellipse(img, (470, 420), (40, 25), 20, 0, 360, (140, 25, 20), -1, cv2.LINE_AA)  # red bush / jacket
     det = detect_rope(_jpeg(img))
     assert not det, det.center_xy
 
@@ -157,14 +155,10 @@ def test_orange_tape_alone_is_not_a_rope(no_rope):
     l, r = _trunk_cols(no_rope, 1, 300)
     img = no_rope["rgb"].copy()
     cv2.rectangle(img, (l, 296), (r, 305), (235, 125, 20), -1, cv2.LINE_AA)           # wide flat orange band
-    det = detect_rope(_jpeg(img))
-    assert not det or det.score < 0.5 * _drawn_rope_score(no_rope)
-
-
-def _drawn_rope_score(no_rope):
-    l, r = _trunk_cols(no_rope, 1, 300)
+    assert not detect_rope(_jpeg(img))
+    # the same trunk with a rope-red band is a rope
     img, _ = _draw_rope(no_rope["rgb"], l, r, 300, 3)
-    return detect_rope(_jpeg(img)).score
+    assert detect_rope(_jpeg(img))
 
 
 @pytest.mark.parametrize("width", [1.2, 2.0])

@@ -19,8 +19,9 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["cache_samples", "load_sample", "evaluate_sample", "run_benchmark", "summarize",
-           "collect_candidates", "fit_score_weights", "main"]
+__all__ = ["cache_samples", "load_sample", "evaluate_sample", "run_benchmark", "summarize", "no_rope_indices",
+           "oracle_height_check", "collect_candidates", "collect_real_negatives", "count_flagged",
+           "fit_score_weights", "main"]
 
 DEFAULT_CACHE = Path("/tmp/ropecache")
 
@@ -268,6 +269,33 @@ def collect_candidates(paths: list[Path]) -> list[dict]:
     return out
 
 
+def collect_real_negatives(folder: Path) -> list[dict]:
+    """Candidates on real photos known to have no rope (e.g. ``/work/shared/data/real_trees``), as
+    no-rope samples for :func:`fit_score_weights` (real bark, twigs and foliage; the renderer's are
+    simpler)."""
+    import cv2
+    from monodbh.toolkit.rope import detect_rope
+    out = []
+    for p in sorted(Path(folder).glob("*.jpg")):
+        rgb = cv2.imread(str(p), cv2.IMREAD_COLOR)[:, :, ::-1].copy()
+        det = detect_rope(rgb, min_score=-1e9, ambiguity_margin=-1.0)
+        out.append(dict(name=p.name, path=str(p), roped=False, visible=False,
+                        cands=[dict(f=c.features, lab=False, length_px=c.length_px, tape=False)
+                               for c in det.candidates]))
+    return out
+
+
+def count_flagged(photos: list[str], **detect_kw) -> int:
+    """How many of the (rope-free) photos get a rope or an ambiguity from :func:`detect_rope`."""
+    import cv2
+    from monodbh.toolkit.rope import detect_rope
+    n = 0
+    for p in photos:
+        det = detect_rope(cv2.imread(str(p), cv2.IMREAD_COLOR)[:, :, ::-1].copy(), **detect_kw)
+        n += bool(det.found or det.ambiguous)
+    return n
+
+
 def fit_score_weights(samples: list[dict], *, max_fp_rate: float = 0.1, l2: float = 0.03,
                       iters: int = 3000, lr: float = 0.3, ignore_tape: bool = True) -> dict:
     """Fit the log-odds weights of :data:`monodbh.toolkit.rope.SCORE_WEIGHTS`.
@@ -335,6 +363,8 @@ def main(argv: list[str] | None = None) -> int:
                     help="pass a GT-based height_check that rejects bands on flagging-taped trees")
     ap.add_argument("--fit", action="store_true",
                     help="fit SCORE_WEIGHTS on the samples (2-fold cross-validated report, then all)")
+    ap.add_argument("--real-negatives", type=Path, metavar="DIR",
+                    help="with --fit: rope-free real photos (*.jpg) used as extra negatives (cross-validated)")
     ap.add_argument("-v", "--verbose", action="store_true")
     a = ap.parse_args(argv)
     W, H = (int(v) for v in a.size.lower().split("x"))
@@ -356,21 +386,25 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _fit_report(paths: list[Path], a) -> int:
-    from monodbh.toolkit import rope
     samples = collect_candidates(paths)
+    real = collect_real_negatives(a.real_negatives) if a.real_negatives else []
     halves = (paths[0::2], paths[1::2])
+    rhalves = (real[0::2], real[1::2])
     for oracle in (False, True):
-        recs = []
+        recs, flagged = [], 0
         for k in (0, 1):
             train = {p.name for p in halves[k]}
-            w = fit_score_weights([s for s in samples if s["name"] in train])
+            w = fit_score_weights([s for s in samples if s["name"] in train] + rhalves[k])
             recs += run_benchmark(halves[1 - k], tree_mask=a.tree_mask, weights=w, oracle_height=oracle)
+            flagged += count_flagged([r["path"] for r in rhalves[1 - k]], weights=w)
         print(f"2-fold cross-validation (weights fitted on the other half){', oracle height check' if oracle else ''}:")
         print(summarize(recs))
-    w = fit_score_weights(samples)
+        if real:
+            print(f"| real rope-free photos (held-out half each) | {len(real)} | reported a rope or ambiguity | "
+                  f"{flagged}/{len(real)} |")
+    w = fit_score_weights(samples + real)
     print("fitted on all:")
     print("SCORE_WEIGHTS = dict(" + ", ".join(f"{k}={v}" for k, v in w.items()) + ")")
-    del rope
     return 0
 
 

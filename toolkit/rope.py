@@ -32,6 +32,7 @@ Examples
 """
 from __future__ import annotations
 
+import functools
 import time
 from dataclasses import dataclass, field
 from typing import Callable
@@ -80,6 +81,7 @@ class RopeCandidate:
     red: float = field(default=0.0, repr=False)
     red_area: float = field(default=0.0, repr=False)
     peaky: float = field(default=0.0, repr=False)
+    edge_snr: float = field(default=0.0, repr=False)
     corr: float = field(default=0.0, repr=False)
 
     def as_dict(self) -> dict:
@@ -197,9 +199,10 @@ def _segments(R: np.ndarray, F: np.ndarray, rgb: np.ndarray, thr: float, min_len
         return None
     remap = np.zeros(n, np.int32)
     remap[keep] = np.arange(1, len(keep) + 1)
-    li_img = remap[lab]
-    ys, xs = np.nonzero(li_img)
-    li = li_img[ys, xs] - 1
+    ys, xs = np.nonzero(m)                     # sparse: only line pixels
+    li = remap[lab[ys, xs]]
+    sel = li > 0
+    ys, xs, li = ys[sel], xs[sel], li[sel] - 1
     k = len(keep)
     wts = R[ys, xs].astype(np.float64)
     cnt = np.bincount(li, minlength=k).astype(np.float64)
@@ -430,37 +433,45 @@ def _clutter(c: RopeCandidate, counts: _Counts) -> None:
 
 
 def _maxfilt(v: np.ndarray, r: int) -> np.ndarray:
-    """Running maximum of a 1-D array over a window of half width ``r``."""
+    """Running maximum along the rows of a (K, N) float32 array over windows of half width ``r``."""
     if r <= 0:
         return v
-    return cv2.dilate(v.astype(np.float32)[None, :], np.ones((1, 2 * r + 1), np.uint8),
-                      borderType=cv2.BORDER_REPLICATE)[0]
+    return cv2.dilate(v, _line_kernel(r), borderType=cv2.BORDER_REPLICATE)
+
+
+@functools.lru_cache(maxsize=256)
+def _line_kernel(r: int) -> np.ndarray:
+    return np.ones((1, 2 * r + 1), np.uint8)
 
 
 def _edges(c: RopeCandidate, gray_integral: np.ndarray) -> None:
     """Do both band ends sit on a vertical intensity edge (the trunk silhouette)?
 
-    For each end, the grey column means of 4 horizontal strips (2 above, 2 below the band) are
+    For each end, the grey column means of horizontal strips (``_EDGE_NSTRIP`` above and below
+    the band, each ``_EDGE_STRIP`` times the band length high) are
     taken in a window around the end; a step between the means of two adjacent boxes must appear
     in every strip with the same sign, allowing for a trunk leaning up to 15 deg.
-    ``edges`` = per end ``step / (step + 6)`` (grey levels).
+    ``edges`` = per end ``step / (step + 6)`` (grey levels); ``edge_snr`` = geometric mean over
+    the ends of the step over the median step in the window (a lone silhouette vs foliage texture).
     """
     II = gray_integral
     H, W = II.shape[0] - 1, II.shape[1] - 1
     L = c.length_px
     T = max(c.thickness_px, 1.0)
     p = c.polyline
-    hs = int(min(max(0.2 * L, 4), 80))                 # height of each sub-strip
+    hs = int(min(max(_EDGE_STRIP * L, 4), 160))        # height of each sub-strip
     a = int(min(max(0.05 * L, 1), 16))                 # width of the step boxes
     s = int(min(max(0.2 * L, 3), 100))                 # search range around the band end
-    out = []
+    out, snr = [], []
     for (xe, ye) in (p[0], p[-1]):
         xa = int(round(xe)) - s - a - 1
         xb = int(round(xe)) + s + a + 2
         prof, reach = [], []
         if xa >= 0 and xb <= W:
-            for ya, dist in ((ye - T - 1 - 2 * hs, 1.5 * hs), (ye - T - 1 - hs, 0.5 * hs),
-                             (ye + T + 1, 0.5 * hs), (ye + T + 1 + hs, 1.5 * hs)):
+            for k in range(-_EDGE_NSTRIP, _EDGE_NSTRIP):
+                # strips above (k < 0) and below (k >= 0) the band; dist = strip centre to band
+                ya = ye - T - 1 + k * hs if k < 0 else ye + T + 1 + k * hs
+                dist = (abs(k + 0.5) if k >= 0 else abs(k) - 0.5) * hs
                 ya = int(round(ya))
                 if ya < 0 or ya + hs > H:
                     continue
@@ -469,16 +480,26 @@ def _edges(c: RopeCandidate, gray_integral: np.ndarray) -> None:
                 reach.append(int(round(0.27 * (dist + T))))
         if len(prof) < 2:
             out.append(0.0)
+            snr.append(0.0)
             continue
-        P = np.stack(prof)
-        x = np.arange(a, P.shape[1] - a)
-        D = (P[:, x + a] - 2 * P[:, x] + P[:, x - a]) / a      # right box mean - left box mean
-        best = 0.0
-        for sg in (1.0, -1.0):
-            e = np.stack([_maxfilt(sg * d, r) for d, r in zip(D, reach)]).min(0)
-            best = max(best, float(e.max()) if e.size else 0.0)
+        P = np.stack(prof).astype(np.float32)
+        D = (P[:, 2 * a:] - 2 * P[:, a:-a] + P[:, :-2 * a]) / a    # right box mean - left box mean
+        if D.shape[1] == 0:
+            out.append(0.0)
+            snr.append(0.0)
+            continue
+        # both step signs at once; strips with the same lean allowance dilated together
+        DD = np.concatenate([D, -D])
+        rr = np.array(reach + reach)
+        M = np.empty_like(DD)
+        for r in np.unique(rr):
+            M[rr == r] = _maxfilt(DD[rr == r], int(r))
+        n = len(D)
+        best = max(0.0, float(M[:n].min(0).max()), float(M[n:].min(0).max()))
         out.append(best / (best + 6.0))
+        snr.append(best / (float(np.median(np.abs(D))) + 2.0))
     c.edges = (out[0], out[1])
+    c.edge_snr = float(np.sqrt(snr[0] * snr[1])) if len(snr) == 2 else 0.0
 
 
 def _continuity(c: RopeCandidate, iis: list[np.ndarray]) -> None:
@@ -562,10 +583,14 @@ def _uniformity(c: RopeCandidate, Rs: list[np.ndarray]) -> None:
 
 
 #: Weights of the candidate score (log-odds): ``score = bias + sum_k w_k * feature_k``
-#: (features: :func:`candidate_features`); fitted on synthetic photos (``bench_rope --fit``).
-SCORE_WEIGHTS = dict(bias=-0.18, log_contrast=2.72, log_length=0.51, log_density=-0.29, coverage=3.07,
-                     shape=1.65, hue=-26.6, edge_min=3.04, edge_max=2.60, log_clutter=-1.33, members=-0.25,
-                     coarse=-1.42, resid=-0.82, step=-2.11, corr=1.13, red_area=-5.0, peaky=-2.0)
+#: (features: :func:`candidate_features`). Fitted with ``python -m monodbh.toolkit.bench_rope --fit
+#: --extra-no-rope 36 --real-negatives /work/shared/data/real_trees`` (150 + 36 synthetic 1280x960
+#: photos of seed 7000, and 24 rope-free real photos as negatives); the bias puts 10 % of the
+#: rope-free photos (tape bands excluded) above 0.
+SCORE_WEIGHTS = dict(bias=-1.79, log_contrast=2.13, log_length=0.58, log_density=-0.23, coverage=3.15,
+                     shape=1.54, hue=-6.5, edge_min=0.61, edge_max=1.30, log_clutter=-0.92, members=-0.27,
+                     coarse=-1.24, resid=-0.66, step=-1.83, corr=1.04, red_area=-2.56, peaky=-0.34,
+                     log_red=0.33, log_edge_snr=1.34)
 
 
 def candidate_features(c: RopeCandidate) -> dict:
@@ -578,14 +603,14 @@ def candidate_features(c: RopeCandidate) -> dict:
         edge_min=float(min(c.edges)), edge_max=float(max(c.edges)), log_clutter=float(np.log1p(c.clutter)),
         members=float(c.members - 1), coarse=float(c.level == 2), resid=float(c.resid / T),
         step=float(min(c.step, 1.0)), corr=float(c.corr), red_area=float(c.red_area),
-        peaky=float(c.peaky))
+        peaky=float(c.peaky), log_red=float(np.log(c.red + 0.01)), log_edge_snr=float(np.log1p(c.edge_snr)))
 
 
 def _score(c: RopeCandidate, weights: dict | None = None) -> float:
     """Log-odds that the candidate is the rope: ``bias + sum_k w_k * feature_k``."""
     w = SCORE_WEIGHTS if weights is None else weights
     c.features = candidate_features(c)
-    if c.features["shape"] <= 0:
+    if c.length_px < _MIN_ELONGATION * max(c.thickness_px, 0.7) or c.hue > _MAX_HUE:
         return -np.inf
     return float(w.get("bias", 0.0) + sum(w[k] * c.features[k] for k in c.features if k in w))
 
@@ -594,13 +619,17 @@ def _score(c: RopeCandidate, weights: dict | None = None) -> float:
 
 _PIECE_THR = 0.012      # line-contrast level of the pixels forming pieces
 _SIGMA_X = 2.0          # blur along the line before the contrast (pixels of each level)
+_MAX_HUE = 0.35         # bands more orange than this ((G - B) / R) are tape, not rope
+_MIN_ELONGATION = 5.0   # band length / thickness: a rope spans a trunk >= 5 tube diameters wide
+_EDGE_STRIP = 0.2       # trunk-edge test: strip height relative to the band length ...
+_EDGE_NSTRIP = 2        # ... and strips on each side of the band
 
 
 def detect_rope(rgb: np.ndarray, tree_mask: np.ndarray | None = None, *,
                 pick_xy: tuple[float, float] | None = None,
                 height_check: Callable[[RopeCandidate], bool] | None = None,
-                work_long_side: int = 1600, min_contrast: float = 0.015, min_score: float = 0.0,
-                ambiguity_margin: float = 1.0, nearer_ratio: float = 1.6, max_candidates: int = 100,
+                work_long_side: int = 1600, min_contrast: float = 0.015, min_score: float = 1.0,
+                ambiguity_margin: float = 1.0, nearer_ratio: float = 1.6, max_candidates: int = 50,
                 max_segments: int = 400, weights: dict | None = None) -> RopeDetection:
     """Find the red rope tied around a trunk.
 
@@ -614,7 +643,9 @@ def detect_rope(rgb: np.ndarray, tree_mask: np.ndarray | None = None, *,
         1.3 m above the ground?"); candidates for which it returns False are dropped.
     work_long_side : candidates are searched on a copy downscaled to this long side.
     min_contrast : minimum mean red-ness contrast of a band.
-    min_score : a candidate is a rope when its score (a log-odds) is above this.
+    min_score : a candidate is a rope when its score (a log-odds) is above this. The score's bias
+        puts 10 % of rope-free photos above 0; the default 1.0 trades recall for precision (a
+        missed rope can be picked with ``pick_xy``, a false one would silently give a wrong DBH).
     ambiguity_margin : rope candidates on other bands scoring within this margin of the best
         (log-odds units) are rivals. Of the best and its rivals, one whose band is at least
         ``nearer_ratio`` times longer than each other's (a larger, nearer roped trunk) is taken;
@@ -702,36 +733,50 @@ def detect_rope(rgb: np.ndarray, tree_mask: np.ndarray | None = None, *,
     cands.sort(key=lambda c: -c.score)
     cands = _dedupe(cands)
     lap("score")
+    # choose; a chosen band whose full-resolution refinement is not band-like (a blob) is dropped
+    for _ in range(3):
+        best = _choose(cands, pick_xy, min_score, ambiguity_margin, nearer_ratio)
+        if best is None or isinstance(best, str):
+            break
+        det = _refine(rgb, best, tree_mask)
+        arc = float(np.hypot(*np.diff(det.polyline, axis=0).T).sum()) + 1.0
+        if arc >= _MIN_ELONGATION * max(det.thickness_px, 0.7):
+            det.candidates = cands
+            lap("refine")
+            tm["total"] = round(1000 * (time.perf_counter() - t0), 2)
+            det.timings_ms = tm
+            return det
+        best.score = -np.inf
+        cands = [c for c in cands if c is not best]
+    if isinstance(best, str):
+        return RopeDetection(False, best, candidates=cands, ambiguous=True, timings_ms=tm)
+    none.candidates = cands
+    return none
+
+
+def _choose(cands: list[RopeCandidate], pick_xy, min_score: float, ambiguity_margin: float,
+            nearer_ratio: float) -> RopeCandidate | str | None:
+    """The candidate to report, an ambiguity message, or None (see :func:`detect_rope`)."""
     if pick_xy is not None:
         if not cands:
-            return none
+            return None
         px, py = pick_xy
         near = [c for c in cands[:30] if c.score > min_score - 3.0] or cands[:30]
-        best = min(near, key=lambda c: _dist_to(c, px, py))
-    else:
-        ropes = [c for c in cands if c.score > min_score]
-        if not ropes:
-            none.candidates = cands
-            return none
-        best = ropes[0]
-        rivals = [c for c in ropes[1:] if c.score >= best.score - ambiguity_margin]
-        if rivals:
-            group = [best] + rivals
-            longest = max(group, key=lambda c: c.length_px)
-            if all(longest.length_px >= nearer_ratio * c.length_px for c in group if c is not longest):
-                best = longest
-            else:
-                c1, c2 = group[0], group[1]
-                msg = (f"two rope candidates at ({c1.center_xy[0]:.0f},{c1.center_xy[1]:.0f}) and "
-                       f"({c2.center_xy[0]:.0f},{c2.center_xy[1]:.0f}) (e.g. two roped trees); "
-                       f"choose one with --pick X,Y")
-                return RopeDetection(False, msg, candidates=cands, ambiguous=True, timings_ms=tm)
-    det = _refine(rgb, best, tree_mask)
-    det.candidates = cands
-    lap("refine")
-    tm["total"] = round(1000 * (time.perf_counter() - t0), 2)
-    det.timings_ms = tm
-    return det
+        return min(near, key=lambda c: _dist_to(c, px, py))
+    ropes = [c for c in cands if c.score > min_score]
+    if not ropes:
+        return None
+    best = ropes[0]
+    rivals = [c for c in ropes[1:] if c.score >= best.score - ambiguity_margin]
+    if not rivals:
+        return best
+    group = [best] + rivals
+    longest = max(group, key=lambda c: c.length_px)
+    if all(longest.length_px >= nearer_ratio * c.length_px for c in group if c is not longest):
+        return longest
+    c1, c2 = group[0], group[1]
+    return (f"two rope candidates at ({c1.center_xy[0]:.0f},{c1.center_xy[1]:.0f}) and "
+            f"({c2.center_xy[0]:.0f},{c2.center_xy[1]:.0f}) (e.g. two roped trees); choose one with --pick X,Y")
 
 
 def _downscale(rgb: np.ndarray, long_side: int) -> np.ndarray:
