@@ -587,10 +587,10 @@ def _uniformity(c: RopeCandidate, Rs: list[np.ndarray]) -> None:
 #: --extra-no-rope 36 --real-negatives /work/shared/data/real_trees`` (150 + 36 synthetic 1280x960
 #: photos of seed 7000, and 24 rope-free real photos as negatives); the bias puts 10 % of the
 #: rope-free photos (tape bands excluded) above 0.
-SCORE_WEIGHTS = dict(bias=-1.79, log_contrast=2.13, log_length=0.58, log_density=-0.23, coverage=3.15,
-                     shape=1.54, hue=-6.5, edge_min=0.61, edge_max=1.30, log_clutter=-0.92, members=-0.27,
-                     coarse=-1.24, resid=-0.66, step=-1.83, corr=1.04, red_area=-2.56, peaky=-0.34,
-                     log_red=0.33, log_edge_snr=1.34)
+SCORE_WEIGHTS = dict(bias=-1.085, log_contrast=1.956, log_length=0.456, log_density=-0.208, coverage=2.745,
+                     shape=1.359, hue=-13.054, edge_min=1.022, edge_max=1.605, log_clutter=-0.774, members=-0.279,
+                     coarse=-1.259, resid=-0.589, step=-2.38, corr=1.012, red_area=-2.366, peaky=-0.244,
+                     log_red=0.419, log_edge_snr=1.163)
 
 
 def candidate_features(c: RopeCandidate) -> dict:
