@@ -202,3 +202,25 @@ def test_two_equal_ropes_are_ambiguous_and_pick_selects(roped):
     left = detect_rope(img, pick_xy=(gx.mean(), ys.mean()))
     assert left and left.center_xy[0] < W
     assert _dist_to_mask(gt, left.center_xy) <= tol
+
+
+REAL_TREES = "/work/shared/data/real_trees"
+
+
+def test_real_rope_free_photos():
+    """Real photos without a rope (red-brown bark, twigs, foliage): no rope reported.
+
+    One of the 24 (03, a dark branch across sunlit foliage) currently scores just above the
+    threshold; more than one is a regression.
+    """
+    import glob
+    import os
+    photos = sorted(glob.glob(os.path.join(REAL_TREES, "*.jpg")))
+    if not photos:
+        pytest.skip(f"{REAL_TREES} not available")
+    flagged = []
+    for p in photos:
+        det = detect_rope(cv2.imread(p, cv2.IMREAD_COLOR)[:, :, ::-1].copy())
+        if det or det.ambiguous:
+            flagged.append(os.path.basename(p))
+    assert len(flagged) <= 1, flagged

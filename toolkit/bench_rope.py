@@ -2,11 +2,19 @@
 
 Renders (once) ``count`` samples of dataset ``seed`` with the scene generator, caches the pixels
 and the ground truth the benchmark needs as ``.npz`` files, then runs the detector on every cached
-sample and prints detection / false-positive rates per scene kind and timings.
+sample and prints detection / false-positive rates per scene kind and timings. ``--fit`` refits
+:data:`monodbh.toolkit.rope.SCORE_WEIGHTS` (2-fold cross-validated report, then weights on all).
 
-Run ``python -m monodbh.toolkit.bench_rope --help``. Rendering 150 samples at 1280x960 takes about
-8-15 minutes on one loaded core; run it under ``nice``. The generator is imported lazily, only to
-fill the cache (it needs the ``synth`` extra).
+Typical use (rendering 150 samples at 1280x960 takes 10-25 minutes on a shared 2-core machine;
+run it under ``nice``; the generator needs the ``synth`` extra and is imported lazily)::
+
+    nice python -m monodbh.toolkit.bench_rope --render-only --extra-no-rope 36
+    python -m monodbh.toolkit.bench_rope --cached-only --extra-no-rope 36
+    python -m monodbh.toolkit.bench_rope --cached-only --extra-no-rope 36 --fit \
+        --real-negatives /work/shared/data/real_trees
+
+A sample counts as detected when the reported centre lies within max(5 px, half the roped
+trunk's width) of a GT rope pixel of the roped tree.
 """
 from __future__ import annotations
 
