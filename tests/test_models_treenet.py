@@ -83,7 +83,7 @@ def test_train_trees_smoke_and_resume(tmp_path):
 
     data = [fake_tree_sample(i) for i in range(3)]
     opts = dict(size="tiny", batch_size=4, crops_per_sample=2, val_n=2, threads=1,
-                warmup_steps=1, log_every=1, verbose=False)
+                warmup_steps=1, log_every=1, mode="cycle+sup", verbose=False)
     a, b = tmp_path / "a", tmp_path / "b"
     r = train_trees(a, 3, data, stop_at=2, **opts)
     assert r["step"] == 2
@@ -102,7 +102,7 @@ def test_train_trees_smoke_and_resume(tmp_path):
     assert all(torch.allclose(wa[k].float(), wb[k].float(), atol=1e-5) for k in wa)
 
 
-@pytest.mark.parametrize("mode", ["sup", "cycle"])
+@pytest.mark.parametrize("mode", ["sup", "cycle"])  # cycle+sup: smoke/resume test above
 def test_train_trees_modes(tmp_path, mode):
     from monodbh.models.training.trees import train_trees
 

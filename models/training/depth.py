@@ -60,8 +60,8 @@ class DepthTrainConfig:
     decay_at: float = 0.8          #: lr x0.1 after this fraction of the steps
     lambda_l1: float = 10.0
     lambda_gan: float = 1.0        #: 0 disables the discriminator entirely
-    lambda_silog: float = 0.0
-    lambda_grad: float = 0.0
+    lambda_silog: float = 2.0      #: measured to help (300-step proxy: AbsRel 0.350 -> 0.337
+    lambda_grad: float = 2.0       #: and delta1 0.476 -> 0.497 together with lambda_grad)
     gan_start: int = 0             #: first step with the adversarial term
     mask_drop: float = 0.1         #: per-tree probability of dropping it from the input mask
     mask_morph: float = 0.3        #: probability of a random 1-px erode/dilate of the input mask

@@ -13,7 +13,8 @@ Objective (``mode``):
 ``"sup"``        supervised masked L1 on ``(R_n, G_n)`` only;
 ``"cycle"``      the paper's Cycle-GAN: G (crop -> silhouette), F (silhouette + mask -> RGB),
                  discriminators D_Y (silhouette) and D_X (RGB), GAN + cycle + identity losses;
-``"cycle+sup"``  both (default; our data is paired).
+``"cycle+sup"``  both (our data is paired).
+Default ``"sup"`` (measured: best per step and ~8x cheaper per crop than the cycle modes).
 
 Validation: thickness through the stem axis at the crop centre (mean of the 2x2 central
 pixels) ``|G_pred - G_true| / G_true`` (``g_relerr``) and the fraction within 10 %
@@ -57,7 +58,9 @@ class TreeTrainConfig:
     seed: int = 0
     batch_size: int = 8
     crops_per_sample: int = 4      #: crops cut from each rendered sample in a batch
-    mode: str = "cycle+sup"        #: "sup", "cycle" or "cycle+sup"
+    #: "sup", "cycle" or "cycle+sup". Default "sup": on a 300-step proxy it beat "cycle+sup" on
+    #: every metric (thickness rel. error 0.189 vs 0.246) at ~1/8 of the CPU cost per crop.
+    mode: str = "sup"
     lr_g: float = 1e-3             #: paper: Adam 1e-3 (G and F)
     lr_d: float = 2e-4
     warmup_steps: int = 100
@@ -89,7 +92,7 @@ class TreeTrainConfig:
         unknown = set(d) - names
         if unknown:
             raise TypeError(f"unknown tree training options: {sorted(unknown)}")
-        if d.get("mode", "cycle+sup") not in ("sup", "cycle", "cycle+sup"):
+        if d.get("mode", "sup") not in ("sup", "cycle", "cycle+sup"):
             raise ValueError(f"mode must be sup, cycle or cycle+sup, got {d['mode']!r}")
         return cls(**d)
 
