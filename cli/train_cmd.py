@@ -17,7 +17,7 @@ def train(
     data: Optional[List[Path]] = typer.Option(None, "--data", help="dbh synth folder(s); default: render on the fly."),
     val: Optional[List[Path]] = typer.Option(None, "--val", help="Validation folder(s) (seeds never used in training)."),
     stop_at: Optional[int] = typer.Option(None, "--stop-at", help="Stop (checkpointed) after this many steps."),
-    size: str = typer.Option("base", "--size", help="Model size: base | tiny."),
+    size: str = typer.Option("base", "--size", help="Model size: base | tiny | wide (cden/treenet: the wider first-run configs)."),
     batch_size: Optional[int] = typer.Option(None, "--batch-size"),
     threads: Optional[int] = typer.Option(None, "--threads", help="CPU threads (default: all cores)."),
 ) -> None:

@@ -99,6 +99,8 @@ class CDENConfig:
 
 CDEN_CONFIGS: dict[str, CDENConfig] = {
     "base": CDENConfig(),
+    # the first long CPU run (shipped in 0.1) used this wider encoder: embed 48, depths 2-2-2-2
+    "wide": CDENConfig(embed=48, depths=(2, 2, 2, 2), heads=(2, 4, 8, 16)),
     "tiny": CDENConfig(img=64, embed=8, depths=(1, 1), heads=(1, 2), ws=4, mlp_ratio=2.0,
                        skips={32: 16, 16: 8, 4: 8}, dec={16: 8, 8: 8, 4: 8, 2: 8, 1: 8},
                        fine=4, head_k=3),
@@ -255,7 +257,7 @@ def build_cden(size: str) -> CDENGenerator:
 def build_cden_discriminator(size: str) -> CDENDiscriminator:
     """Discriminator matching the generator size."""
     cfg = CDEN_CONFIGS[size]
-    return CDENDiscriminator(cfg.img, (32, 64, 128, 256) if size == "base" else (8, 8, 16, 16))
+    return CDENDiscriminator(cfg.img, (8, 8, 16, 16) if size == "tiny" else (32, 64, 128, 256))
 
 
 def with_overrides(size: str, **kw) -> CDENConfig:

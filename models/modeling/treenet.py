@@ -53,6 +53,8 @@ class TreeNetConfig:
 
 TREENET_CONFIGS: dict[str, TreeNetConfig] = {
     "base": TreeNetConfig(),
+    # the first long CPU run (shipped in 0.1) used these wider U-Net channels
+    "wide": TreeNetConfig(ch=(24, 48, 96, 192, 256)),
     "tiny": TreeNetConfig(img=64, ch=(4, 8, 8, 16), disc_ch=(4, 8, 8, 16)),
 }
 

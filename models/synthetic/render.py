@@ -378,6 +378,7 @@ def render_scene(scene: Scene, rng: np.random.Generator, *, aa: bool = True, sha
         e[:, :-1] |= oid[:, 1:] != oid[:, :-1]
         e[1:] |= oid[1:] != oid[:-1]
         e[:-1] |= oid[1:] != oid[:-1]
+        band = np.zeros((H, W), bool)
         rope_objs = [k for k, ob in enumerate(ms.objects) if ob["kind"] in ("rope", "tape")]
         if rope_objs:
             rv = np.concatenate([ms.verts[k] for k in rope_objs])
@@ -387,15 +388,21 @@ def render_scene(scene: Scene, rng: np.random.Generator, *, aa: bool = True, sha
                 ip, _ = cv2.projectPoints(pc, np.zeros(3), np.zeros(3), cam.K, cam.dist)
                 ip = np.round(ip.reshape(-1, 2)).astype(int)
                 ok = (ip[:, 0] >= 0) & (ip[:, 0] < W) & (ip[:, 1] >= 0) & (ip[:, 1] < H)
-                band = np.zeros((H, W), np.uint8)
-                band[ip[ok, 1], ip[ok, 0]] = 1
-                band = cv2.dilate(band, np.ones((5, 5), np.uint8)) > 0
+                b8 = np.zeros((H, W), np.uint8)
+                b8[ip[ok, 1], ip[ok, 0]] = 1
+                band = cv2.dilate(b8, np.ones((5, 5), np.uint8)) > 0
                 e |= band
-        ei = np.nonzero(e.ravel())[0]
-        n_aa = len(ei)
-        k = 4
-        if n_aa:
-            jit = np.array([[-0.25, -0.25], [0.25, -0.25], [-0.25, 0.25], [0.25, 0.25]])
+        band_all = band.ravel()
+        n_aa = int(e.sum())
+        # 4 sub-samples in the rope band (its coverage decides the rope label), 2 on other
+        # object edges (leaves, trunk outlines): ~25 % less render time at the same look
+        groups = ((np.nonzero(e.ravel() & band_all)[0],
+                   np.array([[-0.25, -0.25], [0.25, -0.25], [-0.25, 0.25], [0.25, 0.25]])),
+                  (np.nonzero(e.ravel() & ~band_all)[0], np.array([[-0.25, -0.25], [0.25, 0.25]])))
+        for ei, jit in groups:
+            k = len(jit)
+            if not len(ei):
+                continue
             jit = jit + rng.uniform(-0.12, 0.12, (k, 2))
             sp = (px[ei][:, None] + jit[None]).reshape(-1, 2)
             dcs = pixel_rays(cam, sp)

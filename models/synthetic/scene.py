@@ -259,6 +259,13 @@ def _rope_color(rng):
     return (r, r * (0.02 + 0.18 * h), r * rng.uniform(0.02, 0.08))
 
 
+def _tape_color(rng):
+    # fluorescent orange flagging tape, linear RGB: G/R 0.28-0.5 is sRGB hue ~33-44 degrees,
+    # clearly more orange than the rope (sRGB hue ~10-29 degrees, see _rope_color)
+    r = rng.uniform(0.7, 0.9)
+    return (r, r * rng.uniform(0.28, 0.5), r * rng.uniform(0.0, 0.03))
+
+
 def sample_scene(rng: np.random.Generator, width: int, height: int, *, distortion: bool = True,
                  seed: int = 0) -> Scene:
     """Sample a random forest scene and a handheld camera looking at a (usually roped) tree.
@@ -373,7 +380,7 @@ def sample_scene(rng: np.random.Generator, width: int, height: int, *, distortio
         t = near[rng.integers(len(near))]
         h = float(rng.choice([rng.uniform(0.3, 0.8), rng.uniform(1.9, 2.6)]))
         t.rings.append(Ring(s_m=h, tube_radius_m=0.0008, width_m=float(rng.uniform(0.02, 0.035)),
-                            rgb=(0.8, rng.uniform(0.12, 0.3), 0.01), is_rope=False,
+                            rgb=_tape_color(rng), is_rope=False,
                             knot=bool(rng.random() < 0.6), knot_theta=float(rng.uniform(0, 6.28)),
                             tail_len_m=float(rng.uniform(0.1, 0.4))))
         distractors.append(dict(kind="flagging_tape", tree=t.id, height_m=h))
