@@ -47,10 +47,11 @@ app.command("eval-depth")(_eval_depth)
 
 
 # --- training commands (training-only extra; imports inside the commands) ---------------------
-from .train_cmd import export as _export, train as _train  # noqa: E402
+from .train_cmd import export as _export, train as _train, train_pack as _train_pack  # noqa: E402
 
 app.command("train")(_train)
 app.command("export")(_export)
+app.command("train-pack")(_train_pack)
 # --- end training commands ---------------------------------------------------------------------
 
 

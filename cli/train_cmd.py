@@ -20,11 +20,15 @@ def train(
     size: str = typer.Option("base", "--size", help="Model size: base | tiny | wide (cden/treenet: the wider first-run configs)."),
     batch_size: Optional[int] = typer.Option(None, "--batch-size"),
     threads: Optional[int] = typer.Option(None, "--threads", help="CPU threads (default: all cores)."),
+    init: Optional[Path] = typer.Option(None, "--init", exists=True, dir_okay=False,
+                                        help="Warm start from a `dbh train-pack` weights file (new runs)."),
 ) -> None:
     """Train one of the three networks on synthetic scenes (CPU, or CUDA when present)."""
     if kind not in KINDS:
         raise typer.BadParameter(f"kind must be one of {', '.join(KINDS)}, got {kind!r}")
     opts = {"size": size}
+    if init is not None:
+        opts["init_weights"] = str(init)
     if batch_size:
         opts["batch_size"] = batch_size
     if threads:
@@ -54,3 +58,13 @@ def export(
     from monodbh.models.export.cli_impl import export_run
     export_run(run_dir, ship=ship, n_calib=n_calib, tolerance=tolerance,
                val_data=[str(p) for p in val] if val else None)
+
+
+def train_pack(
+    run_dir: Path = typer.Argument(..., exists=True, file_okay=False, help="Training run folder."),
+    out: Path = typer.Option(..., "--out", "-o", help="Weights file to write (float16, weights only)."),
+) -> None:
+    """Pack a run's weights (float16, no optimiser) into one small file to commit and warm-start from."""
+    from monodbh.models.training.common import pack_weights
+    info = pack_weights(run_dir, out)
+    typer.echo(f"{out}: {info['kind']}/{info['size']} step {info['step']}, {info['bytes'] / 1e6:.1f} MB", err=True)

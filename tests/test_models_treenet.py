@@ -129,3 +129,28 @@ def test_treenet_export_hooks():
 
     m = evaluate_kind("treenet", predict, 2, 0, spec, src)
     assert spec.metric == "g_acc" and 0.0 <= m["g_acc"] <= 1.0 and "front_absrel" in m
+
+
+def test_pack_weights_and_warm_start(tmp_path):
+    from monodbh.models.training.common import load_packed_weights, pack_weights
+    from monodbh.models.training.trees import train_trees
+
+    data = [fake_tree_sample(0)]
+    opts = dict(size="tiny", batch_size=2, crops_per_sample=2, val_n=1, threads=1, mode="sup",
+                verbose=False)
+    train_trees(tmp_path / "a", 2, data, **opts)
+    info = pack_weights(tmp_path / "a", tmp_path / "w.pt")
+    assert info["kind"] == "treenet" and info["step"] == 2
+    w = load_packed_weights(tmp_path / "w.pt", "treenet", "tiny")
+    wa = torch.load(tmp_path / "a" / "checkpoint.pt", weights_only=False)["model"]
+    assert all(torch.allclose(w["model"][k], wa[k].float(), rtol=1e-3, atol=1e-3) for k in wa
+               if wa[k].is_floating_point())
+    with pytest.raises(ValueError, match="treenet/tiny"):
+        load_packed_weights(tmp_path / "w.pt", "treenet", "base")
+    # a warm-started run begins from the packed weights (lr 0: one step changes nothing)
+    train_trees(tmp_path / "b", 1, data, init_weights=str(tmp_path / "w.pt"), lr_g=0.0, **opts)
+    wb = torch.load(tmp_path / "b" / "checkpoint.pt", weights_only=False)["model"]
+    assert all(torch.allclose(wb[k].float(), w["model"][k], atol=1e-6) for k in wb if wb[k].is_floating_point()
+               and "running" not in k)
+    cfg = json.loads((tmp_path / "b" / "config.json").read_text())
+    assert cfg["init_weights"]["from_step"] == 2

@@ -50,7 +50,7 @@ __all__ = [
     "batch_indices", "sample_rng", "DataSource", "FolderSource", "GeneratorSource", "ListSource",
     "make_source", "source_from_config", "AugmentConfig", "photometric", "geometric", "augment",
     "resize_sample", "SPATIAL_KEYS", "TRAINING_MODULES", "register_calibration",
-    "calibration_inputs", "register_eval", "evaluate_kind", "load_run_model", "atomic_torch_save",
+    "calibration_inputs", "register_eval", "evaluate_kind", "load_run_model", "atomic_torch_save", "pack_weights", "load_packed_weights",
     "atomic_write_text",
 ]
 
@@ -173,6 +173,34 @@ class RunDir:
         return torch.load(self.checkpoint_path, map_location=map_location, weights_only=False)
 
 
+def pack_weights(run_dir: str | os.PathLike, out: str | os.PathLike) -> dict[str, Any]:
+    """Write the run's model weights only, as float16, to ``out`` (a small file to commit).
+
+    Training continues from it on another machine with ``dbh train KIND --init OUT`` (fresh
+    optimiser). Returns ``{"kind", "size", "step", "bytes"}``.
+    """
+    run = RunDir(run_dir)
+    ckpt = run.load_checkpoint()
+    if ckpt is None:
+        raise FileNotFoundError(f"{run.checkpoint_path}: no checkpoint")
+    sd = {k: (v.half() if v.is_floating_point() else v) for k, v in ckpt["model"].items()}
+    obj = {"format": 1, "kind": ckpt["kind"], "size": ckpt["size"], "step": int(ckpt["step"]),
+           "model": sd}
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    atomic_torch_save(obj, out)
+    return {"kind": obj["kind"], "size": obj["size"], "step": obj["step"], "bytes": out.stat().st_size}
+
+
+def load_packed_weights(path: str | os.PathLike, kind: str, size: str) -> dict[str, Any]:
+    """Read a :func:`pack_weights` file, checking kind and size; weights back to float32."""
+    w = torch.load(path, map_location="cpu", weights_only=True)
+    if w.get("kind") != kind or w.get("size") != size:
+        raise ValueError(f"{path}: weights are {w.get('kind')}/{w.get('size')}, the run is {kind}/{size}")
+    w["model"] = {k: (v.float() if v.is_floating_point() else v) for k, v in w["model"].items()}
+    return w
+
+
 def _jsonable(x: Any) -> Any:
     if isinstance(x, dict):
         return {str(k): _jsonable(v) for k, v in x.items()}
@@ -214,7 +242,7 @@ def train_loop(run_dir: str | os.PathLike, *, config: dict[str, Any], model: tor
                optimizer: torch.optim.Optimizer, steps: int,
                step_fn: Callable[[int], dict[str, float]],
                validate_fn: Callable[[], dict[str, float]] | None = None,
-               resume: bool = False, scheduler: Any = None,
+               resume: bool = False, scheduler: Any = None, init_weights: str | None = None,
                extra: dict[str, Any] | None = None, log_every: int = 10, val_every: int = 500,
                ckpt_every: int = 100, stop_at: int | None = None,
                verbose: bool = True) -> dict[str, Any]:
@@ -274,8 +302,14 @@ def train_loop(run_dir: str | os.PathLike, *, config: dict[str, Any], model: tor
     else:
         if run.log_path.exists():
             run.log_path.unlink()
-        run.write_config(config)
         seed_everything(int(config["seed"]))
+        if init_weights:
+            # warm start from a packed weights file (see pack_weights): weights only, fresh
+            # optimiser and schedule
+            w = load_packed_weights(init_weights, config["kind"], config["size"])
+            model.load_state_dict(w["model"])
+            config = dict(config, init_weights={"file": str(init_weights), "from_step": w["step"]})
+        run.write_config(config)
 
     def save(step: int) -> None:
         run.save_checkpoint({

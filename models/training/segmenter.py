@@ -426,7 +426,8 @@ def train_segmenter(run_dir: str | os.PathLike, steps: int = 20000, data: Any = 
                     num_points: int | None = None, min_area: int = 4,
                     min_thing_area: int = 64,
                     gen_size: tuple[int, int] = (320, 240), threads: int | None = None,
-                    stop_at: int | None = None, verbose: bool = True) -> dict[str, Any]:
+                    stop_at: int | None = None, verbose: bool = True,
+                    init_weights: str | None = None) -> dict[str, Any]:
     """Train the segmenter; resumable (see ``training.common.train_loop``).
 
     Parameters
@@ -513,7 +514,7 @@ def train_segmenter(run_dir: str | os.PathLike, steps: int = 20000, data: Any = 
             val_cache.extend(val_source.get(i) for i in range(n))
         return evaluate_segmenter(torch_predictor(model, device), val_cache, spec)
 
-    return train_loop(run_dir, config=config, model=model, optimizer=optim, steps=steps,
+    return train_loop(run_dir, init_weights=init_weights, config=config, model=model, optimizer=optim, steps=steps,
                       step_fn=step_fn, validate_fn=validate if n_val > 0 else None,
                       resume=resume, scheduler=sched, log_every=log_every, val_every=val_every,
                       ckpt_every=ckpt_every, stop_at=stop_at, verbose=verbose)

@@ -309,7 +309,7 @@ def _lr_lambda(warmup: int, decay_step: int) -> Callable[[int], float]:
 
 def train_trees(run_dir: str, steps: int = 20000, data: Any = None, resume: bool = False, *,
                 val_data: Any = None, stop_at: int | None = None, verbose: bool = True,
-                **options: Any) -> dict[str, Any]:
+                init_weights: str | None = None, **options: Any) -> dict[str, Any]:
     """Train the tree silhouette network into run folder ``out`` (``dbh train trees``).
 
     Parameters
@@ -443,7 +443,7 @@ def train_trees(run_dir: str, steps: int = 20000, data: Any = None, resume: bool
               "train": asdict(cfg), "data": src.config(),
               "val_data": vsrc.config() if vsrc is not src else {"type": "same", "indices": val_idx},
               "input_size": P}
-    res = train_loop(out, config=config, model=G, optimizer=opt_g, steps=steps, step_fn=step_fn,
+    res = train_loop(out, init_weights=init_weights, config=config, model=G, optimizer=opt_g, steps=steps, step_fn=step_fn,
                      validate_fn=validate_fn, resume=resume, scheduler=sched, extra=extra,
                      log_every=cfg.log_every, val_every=cfg.val_every, ckpt_every=cfg.ckpt_every,
                      verbose=verbose, **({"stop_at": stop_at} if stop_at is not None else {}))
