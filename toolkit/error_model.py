@@ -1,0 +1,134 @@
+"""Measure the pipeline's error per scale source and per DBH estimator on a ``dbh synth`` folder.
+
+Prints the table from which :data:`monodbh.toolkit.measure_core.SIGMA_MODEL_NETWORK` is set
+(run it on a folder rendered from seeds used neither for training nor for the benchmark)::
+
+    python -m monodbh.toolkit.error_model data/calset --json runs/error_model.json
+
+For every roped photo the pipeline measured, each scale candidate (the distance to the stem
+axis along the axis ray it proposes) is compared with the true distance, and each DBH
+estimator's *angular* part (its DBH divided by the scale ratio) with the true DBH. Errors are
+natural-log ratios; ``sigma`` is the robust standard deviation ``median |log ratio| / 0.674``.
+Imports only the measuring pipeline (no training dependency).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["true_axis_distance", "collect", "summarize", "main"]
+
+
+def true_axis_distance(meta: dict) -> float:
+    """Distance (m) from the camera centre to the roped stem's axis point at the rope."""
+    R = np.asarray(meta["R_world_from_cam"], float)
+    t = np.asarray(meta["t_world_from_cam"], float)
+    p = R.T @ (np.asarray(meta["rope"]["center_world"], float) - t)
+    return float(np.linalg.norm(p))
+
+
+def collect(folder: str | Path, limit: int | None = None, progress: bool = True) -> list[dict]:
+    """Measure every roped sample of ``folder``; one row per sample (errors included)."""
+    from monodbh.calib import Camera
+    from monodbh.toolkit.pipeline import Session, measure_photo
+
+    sess = Session()
+    rows = []
+    metas = sorted(Path(folder).glob("[0-9]*.json"))[:limit]
+    for k, jp in enumerate(metas):
+        m = json.loads(jp.read_text())
+        if not m.get("roped_tree") or not m.get("rope"):
+            continue
+        cam = Camera(m["K"], m.get("dist"), (int(m["width"]), int(m["height"])))
+        r = measure_photo(str(jp.with_suffix(".jpg")), cam, session=sess)
+        tree = next(t for t in m["trees"] if t["id"] == m["roped_tree"])
+        row = dict(photo=jp.stem, true_dbh_cm=100 * tree["dbh_m"], error=r.error)
+        if r.dbh_cm is not None:
+            lam_true = true_axis_distance(m)
+            cands = r.debug.get("scale_candidates", {})
+            lam_used = float(np.linalg.norm(r.debug["axis_point"]))
+            row.update(dbh_cm=r.dbh_cm, dbh_sigma_cm=r.dbh_sigma_cm, scale_source=r.scale_source,
+                       scale_log_err=float(np.log(lam_used / lam_true)),
+                       cand_log_err={c: float(np.log(v[0] / lam_true)) for c, v in cands.items()},
+                       cand_sigma={c: float(v[1]) for c, v in cands.items()},
+                       est_angular_log_err={e: float(np.log(v / row["true_dbh_cm"]) - np.log(lam_used / lam_true))
+                                            for e, v in r.estimates_cm.items()})
+        rows.append(row)
+        if progress:
+            print(f"\r{k + 1}/{len(metas)}", end="", file=sys.stderr, flush=True)
+    if progress:
+        print(file=sys.stderr)
+    return rows
+
+
+def _stats(v) -> dict:
+    v = np.asarray(v, float)
+    if not len(v):
+        return dict(n=0)
+    return dict(n=int(len(v)), median_abs=float(np.median(np.abs(v))), bias=float(np.median(v)),
+                rms=float(np.sqrt(np.mean(v ** 2))), sigma=float(np.median(np.abs(v)) / 0.674))
+
+
+def summarize(rows: list[dict]) -> dict:
+    """Per-source and per-estimator log-error statistics, DBH accuracy and 1/2-sigma coverage."""
+    ok = [r for r in rows if r.get("dbh_cm") is not None]
+    src, est = {}, {}
+    for r in ok:
+        for c, e in r["cand_log_err"].items():
+            src.setdefault(c, []).append(e)
+        for c, e in r["est_angular_log_err"].items():
+            est.setdefault(c, []).append(e)
+    err = np.array([r["dbh_cm"] - r["true_dbh_cm"] for r in ok])
+    sig = np.array([r["dbh_sigma_cm"] for r in ok])
+    rel = np.array([abs(r["dbh_cm"] / r["true_dbh_cm"] - 1) for r in ok])
+    out = dict(n_roped=len(rows), n_measured=len(ok),
+               sources={k: _stats(v) for k, v in sorted(src.items())},
+               estimators={k: _stats(v) for k, v in sorted(est.items())},
+               chosen_scale=_stats([r["scale_log_err"] for r in ok]))
+    if len(ok):
+        out.update(dbh_mae_cm=float(np.abs(err).mean()), dbh_rel_mae=float(rel.mean()),
+                   coverage_1sigma=float(np.mean(np.abs(err) <= sig)),
+                   coverage_2sigma=float(np.mean(np.abs(err) <= 2 * sig)))
+    return out
+
+
+def _table(summary: dict) -> str:
+    lines = [f"roped photos {summary['n_roped']}, measured {summary['n_measured']}"]
+    if "dbh_mae_cm" in summary:
+        lines.append(f"DBH MAE {summary['dbh_mae_cm']:.2f} cm, relative {100 * summary['dbh_rel_mae']:.1f} %, "
+                     f"|err| <= 1 sigma {100 * summary['coverage_1sigma']:.0f} %, "
+                     f"<= 2 sigma {100 * summary['coverage_2sigma']:.0f} %")
+    lines.append(f"{'':<24}{'n':>4}{'median|ln|':>12}{'bias ln':>10}{'rms ln':>9}{'sigma':>8}")
+    for title, group in (("scale source", summary["sources"]), ("DBH estimator (angular)", summary["estimators"])):
+        lines.append(title)
+        for k, s in group.items():
+            if s["n"]:
+                lines.append(f"  {k:<22}{s['n']:>4}{s['median_abs']:>12.3f}{s['bias']:>10.3f}"
+                             f"{s['rms']:>9.3f}{s['sigma']:>8.3f}")
+    s = summary["chosen_scale"]
+    if s.get("n"):
+        lines.append(f"  {'scale as combined':<22}{s['n']:>4}{s['median_abs']:>12.3f}{s['bias']:>10.3f}"
+                     f"{s['rms']:>9.3f}{s['sigma']:>8.3f}")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m monodbh.toolkit.error_model", description=__doc__.split("\n")[0])
+    ap.add_argument("folder")
+    ap.add_argument("--limit", type=int)
+    ap.add_argument("--json", help="write rows and summary here")
+    a = ap.parse_args(argv)
+    rows = collect(a.folder, a.limit)
+    summary = summarize(rows)
+    print(_table(summary))
+    if a.json:
+        Path(a.json).write_text(json.dumps(dict(summary=summary, rows=rows), indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
