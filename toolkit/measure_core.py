@@ -88,6 +88,7 @@ class Perception:
     source: str = "network"
     silhouette_fn: object = None    # callable(z_axis_m, edges) -> (z1, z2) maps in metres, or None
     edge_search_px: float = 3.0     # how far from the mask border trunk edges are searched (pixels)
+    edge_mask: np.ndarray | None = None  # (H, W) bool mask guiding the edge search (default tree_mask)
     extra: dict = field(default_factory=dict)
 
 
@@ -150,13 +151,14 @@ def measure_from_perception(perc: Perception, photo: str = "", *, timings: dict 
     cam = perc.camera
     gray = perc.rgb.astype(np.float32).mean(2)
     net = perc.source == "network"      # network perception (vs ground truth): wider error model
-    edges = trunk_edges(gray, perc.tree_mask, perc.rope_xy, perc.rope_dir, rope_half_px=perc.rope_half_px,
+    emask = perc.tree_mask if perc.edge_mask is None else perc.edge_mask
+    edges = trunk_edges(gray, emask, perc.rope_xy, perc.rope_dir, rope_half_px=perc.rope_half_px,
                         search_px=perc.edge_search_px)
     if edges:
         # second pass: sample across the stem as found (the rope band may be tilted or arced)
         across = np.array([edges.along[1], -edges.along[0]])
         mid0 = 0.5 * (edges.left_xy + edges.right_xy)
-        e2 = trunk_edges(gray, perc.tree_mask, mid0, across, rope_half_px=perc.rope_half_px,
+        e2 = trunk_edges(gray, emask, mid0, across, rope_half_px=perc.rope_half_px,
                          search_px=perc.edge_search_px)
         if e2 and abs(e2.width_px / edges.width_px - 1) < 0.5:
             edges = e2

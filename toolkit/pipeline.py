@@ -217,8 +217,11 @@ def _measure(path, rgb, camera, pick_xy, want_cloud, want_debug, sess: Session, 
         tree_mask = _rope_band_mask(rope, (h, w))
         flags_extra = ["tree_mask_from_rope"]
     else:
+        # the rope spans the visible trunk: its band fills in stem the coarse mask missed
+        # (e.g. the shaded half of a trunk)
         tree_mask = seg.instance == tid
         flags_extra = []
+    edge_mask = tree_mask | _rope_band_mask(rope, (h, w), height_factor=1.0)
     ground = seg.semantic == 1
 
     t = time.perf_counter()
@@ -248,7 +251,7 @@ def _measure(path, rgb, camera, pick_xy, want_cloud, want_debug, sess: Session, 
                       rope_dir=np.asarray(rope.direction, float), rope_half_px=max(0.5, rope.thickness_px / 2),
                       tree_mask=tree_mask, ground_mask=ground, depth=depth, depth_is_metric=False,
                       silhouette_fn=silhouette_fn, source="network",
-                      edge_search_px=max(3.0, 0.5 * cell))
+                      edge_search_px=max(3.0, 0.5 * cell), edge_mask=edge_mask)
     res = measure_from_perception(perc, str(path), timings=tm)
     res.flags = list(res.flags or []) + flags_extra
     res.tree_id = int(tid)
