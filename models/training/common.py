@@ -651,8 +651,11 @@ def _meta_K(sample: dict[str, Any]) -> np.ndarray | None:
 
 
 def geometric(sample: dict[str, Any], rng: np.random.Generator, cfg: AugmentConfig,
-              out_size: tuple[int, int]) -> dict[str, Any]:
+              out_size: tuple[int, int], fit: int | None = None) -> dict[str, Any]:
     """Random crop (then resize to ``out_size`` = (W, H)) and horizontal flip of all spatial arrays.
+
+    With ``fit`` (pixels), ``out_size`` is ignored and the crop keeps its aspect ratio, resized
+    so that its longer side is ``fit`` (a portrait crop of a landscape scene stays portrait).
 
     ``rgb`` is resized with area/linear interpolation, label and depth arrays with nearest.
     Returns a shallow copy of ``sample`` with new arrays, ``K`` (3, 3) float64 adjusted for the
@@ -674,6 +677,9 @@ def geometric(sample: dict[str, Any], rng: np.random.Generator, cfg: AugmentConf
                 cw, ch = w, h
                 break
     flip = bool(cfg.hflip and rng.random() < cfg.hflip)
+    if fit is not None:
+        sc = fit / max(cw, ch)
+        out_size = (min(fit, max(1, int(round(cw * sc)))), min(fit, max(1, int(round(ch * sc)))))
     out = dict(sample)
     for key in SPATIAL_KEYS:
         if key not in sample or sample[key] is None:
@@ -702,11 +708,11 @@ def resize_sample(sample: dict[str, Any], out_size: tuple[int, int]) -> dict[str
 
 
 def augment(sample: dict[str, Any], rng: np.random.Generator, cfg: AugmentConfig | None,
-            out_size: tuple[int, int]) -> dict[str, Any]:
+            out_size: tuple[int, int], fit: int | None = None) -> dict[str, Any]:
     """:func:`geometric` then :func:`photometric` on ``rgb``; ``cfg=None`` = just resize."""
     if cfg is None:
         return resize_sample(sample, out_size)
-    out = geometric(sample, rng, cfg, out_size)
+    out = geometric(sample, rng, cfg, out_size, fit=fit)
     out["rgb"] = photometric(out["rgb"], rng, cfg)
     return out
 

@@ -73,7 +73,8 @@ class DepthTrainConfig:
     log_every: int = 10
     threads: int | None = None
     augment: dict = field(default_factory=lambda: asdict(AugmentConfig(
-        crop=0.5, crop_min_area=0.5, crop_aspect=(1.0, 1.0))))
+        # crop w/h relative to the photo's: 0.5 turns a 4:3 landscape into a 2:3 portrait crop
+        crop=0.5, crop_min_area=0.5, crop_aspect=(0.5, 1.0))))
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> "DepthTrainConfig":
@@ -193,9 +194,10 @@ def depth_example(sample: dict[str, Any], size: int, rng: np.random.Generator | 
     sample = undistort_sample(sample)
     H, W = sample["rgb"].shape[:2]
     if rng is not None and aug is not None:
-        _, _, _, w, h = letterbox_geometry(W, H, size)
-        s = augment(sample, rng, aug, (w, h))
+        # crops keep their own aspect ratio (portrait crops teach the portrait letterbox)
+        s = augment(sample, rng, aug, (W, H), fit=size)
         rgb, depth, K = s["rgb"], s["depth"], s["K"]
+        h, w = rgb.shape[:2]
         mask = _noisy_mask(s["instance"], rng, mask_drop, mask_morph)
         scale = size / max(w, h)
         mask_lb = letterbox(mask, size, "nearest")
