@@ -53,10 +53,11 @@ def export(
     n_calib: int = typer.Option(32, "--n-calib", help="Calibration samples for int8."),
     tolerance: float = typer.Option(0.03, "--tolerance", help="Max relative loss of the task metric for int8."),
     val: Optional[List[Path]] = typer.Option(None, "--val", help="Evaluation folder(s)."),
+    n_eval: Optional[int] = typer.Option(None, "--n-eval", min=1, help="Evaluation samples (default: --n-calib)."),
 ) -> None:
     """Export a run to ONNX fp32 and int8 (onnxruntime.quantization), print fp32-vs-int8 tables."""
     from monodbh.models.export.cli_impl import export_run
-    export_run(run_dir, ship=ship, n_calib=n_calib, tolerance=tolerance,
+    export_run(run_dir, ship=ship, n_calib=n_calib, tolerance=tolerance, n_eval=n_eval,
                val_data=[str(p) for p in val] if val else None)
 
 
