@@ -222,7 +222,13 @@ class SegmentationResult:
 
 
 def _sigmoid(x: np.ndarray) -> np.ndarray:
-    return 1.0 / (1.0 + np.exp(-np.clip(x, -50, 50)))
+    """Logistic function, float32, computed in place on a copy (fewer temporaries)."""
+    y = np.clip(x, -50, 50).astype(np.float32, copy=False)
+    np.negative(y, out=y)
+    np.exp(y, out=y)
+    y += 1.0
+    np.reciprocal(y, out=y)
+    return y
 
 
 def _softmax(x: np.ndarray) -> np.ndarray:
@@ -233,7 +239,7 @@ def _softmax(x: np.ndarray) -> np.ndarray:
 def panoptic_merge(class_logits: np.ndarray, mask_logits: np.ndarray, size: tuple[int, int],
                    thing_classes: tuple[int, ...] = (3,), score_threshold: float = 0.5,
                    overlap_threshold: float = 0.8, mask_threshold: float = 0.5,
-                   work_max_side: int | None = 1024) -> dict[str, Any]:
+                   work_max_side: int | None = 640) -> dict[str, Any]:
     """Mask2Former panoptic inference: greedy, non-overlapping segments.
 
     Parameters
@@ -253,7 +259,8 @@ def panoptic_merge(class_logits: np.ndarray, mask_logits: np.ndarray, size: tupl
         Masks are bilinearly upsampled (logit space) to a working resolution whose long side is
         at most this, merged there, and the segment map is resized to ``size`` with nearest
         neighbour (the logits are 1/4 of the network input, so a finer working grid adds no
-        information). ``None``: merge at ``size``.
+        information; 640 costs 150 ms for ~50 kept queries vs 340 ms at 1024). ``None``: merge
+        at ``size``.
 
     Returns
     -------
@@ -343,7 +350,7 @@ class Segmenter(OnnxPredictor):
 
     def predict(self, rgb: np.ndarray, size: tuple[int, int] | None = None,
                 score_threshold: float = 0.5, overlap_threshold: float = 0.8,
-                mask_threshold: float = 0.5, work_max_side: int | None = 1024
+                mask_threshold: float = 0.5, work_max_side: int | None = 640
                 ) -> SegmentationResult:
         """Segment a photo.
 
