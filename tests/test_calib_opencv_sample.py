@@ -100,5 +100,7 @@ def test_cli_output_round_trips(cli_run, left_images, tmp_path):
                                  "--square", "0.025", "-o", str(tmp_path / "c.yaml"),
                                  "--format", "ros"])
     assert r.exit_code == 0, r.stderr
-    assert np.allclose(load_camera(tmp_path / "c.yaml").K, cam.K, rtol=1e-9)
+    # A second calibration run is not bit-identical across machines (OpenCV's parallel
+    # Levenberg-Marquardt sums in thread order): 1e-6 relative is 0.5 milli-pixel here.
+    assert np.allclose(load_camera(tmp_path / "c.yaml").K, cam.K, rtol=1e-6, atol=0)
 

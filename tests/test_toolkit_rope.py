@@ -224,3 +224,24 @@ def test_real_rope_free_photos():
         if det or det.ambiguous:
             flagged.append(os.path.basename(p))
     assert len(flagged) <= 1, flagged
+
+
+def test_faint_rope_not_crowded_out_by_red_clutter():
+    """A patch of red leaf litter (many short bright dashes) outranks a faint rope by the cheap band
+    score; the rope's band must still be scored fully (it was cut from the candidate budget)."""
+    rng = np.random.default_rng(3)
+    img = np.empty((480, 640, 3), np.uint8)
+    img[:] = (120, 124, 118)
+    img = np.clip(img + rng.normal(0, 4, img.shape), 0, 255).astype(np.uint8)
+    img[:, 420:500] = (88, 84, 80)                                                  # trunk
+    for _ in range(160):                                                             # red leaf litter
+        x, y = rng.integers(40, 300), rng.integers(260, 440)
+        a, L = rng.uniform(-0.5, 0.5), rng.uniform(6, 14)
+        cv2.line(img, (int(x - L * np.cos(a)), int(y - L * np.sin(a))),
+                 (int(x + L * np.cos(a)), int(y + L * np.sin(a))), (175, 30, 25), 2, cv2.LINE_AA)
+    img, (cx, cy) = _draw_rope(img, 420, 500, 200, 2.0, color=(112, 70, 68))       # faint, dull red
+    img = _jpeg(img)
+    det = detect_rope(img, min_score=-50)
+    assert any(abs(c.center_xy[0] - cx) <= 15 and abs(c.center_xy[1] - cy) <= 6 for c in det.candidates)
+    picked = detect_rope(img, pick_xy=(cx, cy))
+    assert picked and abs(picked.center_xy[0] - cx) <= 15 and abs(picked.center_xy[1] - cy) <= 6

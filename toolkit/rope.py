@@ -13,7 +13,10 @@ above or below) that crosses a trunk from edge to edge. Detection, without a lea
    up to ~60 deg from horizontal, so vertical paint marks and hanging rope ends give little.
 3. **Pieces and bands**: connected components of the contrast map described by moments;
    pieces that extrapolate into each other (a rope behind a branch or a thin stem, a knot) are
-   linked end to end; runs of linked pieces are fitted with a quadratic centre line.
+   linked end to end; runs of linked pieces are fitted with a quadratic centre line. The
+   ``max_candidates`` best runs by a cheap band score get the full score, plus up to half as many
+   from image squares none of those occupies (:func:`_diverse`): a patch of red clutter (leaf
+   litter, berries) would otherwise take the whole budget from a faint rope elsewhere.
 4. **Score** (log-odds, :data:`SCORE_WEIGHTS`, fitted on synthetic photos plus rope-free real
    photos; see :func:`candidate_features`): contrast, redness, length, continuity, thinness,
    red (not orange) hue, fit residual, red clutter and red area around the band, evenness along
@@ -95,6 +98,7 @@ class RopeCandidate:
     peaky: float = field(default=0.0, repr=False)
     edge_snr: float = field(default=0.0, repr=False)
     corr: float = field(default=0.0, repr=False)
+    deep: bool = field(default=False, repr=False)
 
     def as_dict(self) -> dict:
         """JSON-friendly summary."""
@@ -346,6 +350,35 @@ def _runs(seg: dict, chains: list[list[int]], min_contrast: float, max_run: int 
                 scores.append(s[q])
     order = np.argsort(-np.asarray(scores)) if scores else []
     return [out[q] for q in order]
+
+
+def _diverse(seg: dict, runs: list[list[int]], n: int, cell: float, extra: int, per_cell: int = 2) -> list[list[int]]:
+    """The runs to score fully: the ``n`` best by band score, plus up to ``extra`` of the rest
+    from ``cell`` x ``cell`` squares (working pixels, by the run's centre) that none of those
+    ``n`` occupies, at most ``per_cell`` per square.
+
+    A patch of red clutter (fallen leaves, a jacket, berries) yields dozens of short bands that
+    outrank a faint rope by the band score alone and would otherwise take the whole budget.
+    """
+    if len(runs) <= n:
+        return runs
+    cx, cy, a = seg["cx"], seg["cy"], seg["area"]
+
+    def key(r):
+        return (int(np.average(cx[r], weights=a[r]) // cell), int(np.average(cy[r], weights=a[r]) // cell))
+
+    out = list(runs[:n])
+    taken = {key(r) for r in out}
+    used: dict = {}
+    for r in runs[n:]:
+        if len(out) >= n + extra:
+            break
+        k = key(r)
+        if k in taken or used.get(k, 0) >= per_cell:
+            continue
+        used[k] = used.get(k, 0) + 1
+        out.append(r)
+    return out
 
 
 def _band_score(contrast, length, thick, coverage, hue):
@@ -630,6 +663,7 @@ def _score(c: RopeCandidate, weights: dict | None = None) -> float:
 # ----------------------------------------------------------------------------- detector
 
 _PIECE_THR = 0.012      # line-contrast level of the pixels forming pieces
+_DEEP_PRIOR = 0.5       # log-odds taken off bands scored beyond the band-score budget (see _diverse)
 _SIGMA_X = 2.0          # blur along the line before the contrast (pixels of each level)
 _MAX_HUE = 0.35         # bands more orange than this ((G - B) / R) are tape, not rope
 _MIN_ELONGATION = 5.0   # band length / thickness: a rope spans a trunk >= 5 tube diameters wide
@@ -664,7 +698,8 @@ def detect_rope(rgb: np.ndarray, tree_mask: np.ndarray | None = None, *,
         otherwise the result is ambiguous (``found=False``, ``ambiguous=True``) unless ``pick_xy``
         is given.
     nearer_ratio : see ``ambiguity_margin``.
-    max_candidates : how many bands (by the cheap band score) get the full score.
+    max_candidates : how many bands (by the cheap band score) get the full score; up to
+        ``max_candidates // 2`` more from regions none of them occupies, scored ``_DEEP_PRIOR`` lower.
     max_segments : at most this many line pieces (the most contrasted) are linked into bands.
     weights : override :data:`SCORE_WEIGHTS`.
 
@@ -717,8 +752,11 @@ def detect_rope(rgb: np.ndarray, tree_mask: np.ndarray | None = None, *,
     if len(seg["cx"]) > max_segments:
         top = np.argsort(-seg["contrast"] * np.sqrt(seg["length"]))[:max_segments]
         seg = {k: v[top] for k, v in seg.items()}
-    runs = _runs(seg, _link(seg), min_contrast)[:max_candidates]
+    runs = _diverse(seg, _runs(seg, _link(seg), min_contrast), max_candidates,
+                    cell=max(32.0, max(small.shape[:2]) / 16.0), extra=max_candidates // 2)
     cands = [_make_candidate(seg, idx) for idx in runs]
+    for c in cands[max_candidates:]:
+        c.deep = True
     lap("bands")
     gray_ii = cv2.integral(cv2.cvtColor(small, cv2.COLOR_RGB2GRAY), sdepth=cv2.CV_32S)
     rb = cv2.addWeighted(small[..., 0], 0.5, small[..., 2], -0.5, 128.0)       # (R - B) / 2 + 128, uint8
@@ -729,7 +767,7 @@ def detect_rope(rgb: np.ndarray, tree_mask: np.ndarray | None = None, *,
         _continuity(c, [gray_ii, rb_ii])
         _red_area(c, F0)
         _uniformity(c, Rs)
-        c.score = _score(c, weights)
+        c.score = _score(c, weights) - (_DEEP_PRIOR if c.deep else 0.0)
     # to full-resolution pixels
     for c in cands:
         c.polyline = (c.polyline + 0.5) * np.array([sx, sy], np.float32) - 0.5
