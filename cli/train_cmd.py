@@ -21,7 +21,8 @@ def train(
     batch_size: Optional[int] = typer.Option(None, "--batch-size"),
     threads: Optional[int] = typer.Option(None, "--threads", help="CPU threads (default: all cores)."),
     init: Optional[Path] = typer.Option(None, "--init", exists=True, dir_okay=False,
-                                        help="Warm start from a `dbh train-pack` weights file (new runs)."),
+                                        help="Warm start (new runs) from a shipped model, e.g. models/cden_int8.onnx, "
+                                             "or a `dbh train-pack` weights file."),
 ) -> None:
     """Train one of the three networks on synthetic scenes (CPU, or CUDA when present)."""
     if kind not in KINDS:

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["true_axis_distance", "collect", "summarize", "main"]
+__all__ = ["true_axis_distance", "true_up", "collect", "summarize", "main"]
 
 
 def true_axis_distance(meta: dict) -> float:
@@ -29,6 +29,17 @@ def true_axis_distance(meta: dict) -> float:
     t = np.asarray(meta["t_world_from_cam"], float)
     p = R.T @ (np.asarray(meta["rope"]["center_world"], float) - t)
     return float(np.linalg.norm(p))
+
+
+def true_up(meta: dict) -> np.ndarray:
+    """The world's up direction (3,) in the camera frame of a sample."""
+    return np.asarray(meta["R_world_from_cam"], float).T @ np.array([0.0, 0.0, 1.0])
+
+
+def _angle_deg(a, b) -> float:
+    a, b = np.asarray(a, float), np.asarray(b, float)
+    c = abs(a @ b) / (np.linalg.norm(a) * np.linalg.norm(b))
+    return float(np.degrees(np.arccos(np.clip(c, -1, 1))))
 
 
 def collect(folder: str | Path, limit: int | None = None, progress: bool = True) -> list[dict]:
@@ -56,7 +67,9 @@ def collect(folder: str | Path, limit: int | None = None, progress: bool = True)
                        cand_log_err={c: float(np.log(v[0] / lam_true)) for c, v in cands.items()},
                        cand_sigma={c: float(v[1]) for c, v in cands.items()},
                        est_angular_log_err={e: float(np.log(v / row["true_dbh_cm"]) - np.log(lam_used / lam_true))
-                                            for e, v in r.estimates_cm.items()})
+                                            for e, v in r.estimates_cm.items()},
+                       up_source=r.debug.get("up_source"),
+                       up_err_deg={k: _angle_deg(u, true_up(m)) for k, u in r.debug.get("up_sources", {}).items()})
         rows.append(row)
         if progress:
             print(f"\r{k + 1}/{len(metas)}", end="", file=sys.stderr, flush=True)
@@ -76,7 +89,10 @@ def _stats(v) -> dict:
 def summarize(rows: list[dict]) -> dict:
     """Per-source and per-estimator log-error statistics, DBH accuracy and 1/2-sigma coverage."""
     ok = [r for r in rows if r.get("dbh_cm") is not None]
-    src, est = {}, {}
+    src, est, ups = {}, {}, {}
+    for r in ok:
+        for c, e in (r.get("up_err_deg") or {}).items():
+            ups.setdefault(c, []).append(e)
     for r in ok:
         for c, e in r["cand_log_err"].items():
             src.setdefault(c, []).append(e)
@@ -88,7 +104,9 @@ def summarize(rows: list[dict]) -> dict:
     out = dict(n_roped=len(rows), n_measured=len(ok),
                sources={k: _stats(v) for k, v in sorted(src.items())},
                estimators={k: _stats(v) for k, v in sorted(est.items())},
-               chosen_scale=_stats([r["scale_log_err"] for r in ok]))
+               chosen_scale=_stats([r["scale_log_err"] for r in ok]),
+               up_err_deg={k: dict(n=len(v), median=float(np.median(v)), p90=float(np.percentile(v, 90)))
+                           for k, v in sorted(ups.items())})
     if len(ok):
         out.update(dbh_mae_cm=float(np.abs(err).mean()), dbh_rel_mae=float(rel.mean()),
                    coverage_1sigma=float(np.mean(np.abs(err) <= sig)),
@@ -109,6 +127,9 @@ def _table(summary: dict) -> str:
             if s["n"]:
                 lines.append(f"  {k:<22}{s['n']:>4}{s['median_abs']:>12.3f}{s['bias']:>10.3f}"
                              f"{s['rms']:>9.3f}{s['sigma']:>8.3f}")
+    for k, u in summary.get("up_err_deg", {}).items():
+        lines.append(f"  up from {k:<14}{u['n']:>4}  angle to true up: median {u['median']:.2f} deg, "
+                     f"90th percentile {u['p90']:.2f} deg")
     s = summary["chosen_scale"]
     if s.get("n"):
         lines.append(f"  {'scale as combined':<22}{s['n']:>4}{s['median_abs']:>12.3f}{s['bias']:>10.3f}"

@@ -185,6 +185,9 @@ def export_run(run_dir: str | os.PathLike, ship: bool = False, n_calib: int = 32
         "threads": threads, "tolerance": tolerance,
         "training": {"seed": seed, "steps": int(ckpt.get("step", config.get("steps", 0))),
                      "size": spec.size, "run": str(run.path.resolve()),
+                     "init_weights": config.get("init_weights"),
+                     "total_steps": int(ckpt.get("step", config.get("steps", 0)))
+                     + int((config.get("init_weights") or {}).get("from_step") or 0),
                      "data": config.get("data"), "val_data": config.get("val_data")},
         "fp32": {"path": str(fp32_path), "check": check, "metrics": fp32_row.get("metrics", {}),
                  "latency_ms": fp32_row.get("latency_ms"),

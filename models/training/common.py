@@ -201,6 +201,19 @@ def load_packed_weights(path: str | os.PathLike, kind: str, size: str) -> dict[s
     return w
 
 
+def _onnx_steps(path: str | os.PathLike) -> int | None:
+    """Training steps behind an ONNX file: the manifest entry next to it that names it."""
+    try:
+        man = json.loads((Path(path).resolve().parent / "manifest.json").read_text())
+        for entry in man.get("models", {}).values():
+            if entry.get("file") == Path(path).name:
+                t = entry.get("training", {})
+                return int(t.get("steps", 0)) + int((t.get("init_weights") or {}).get("from_step") or 0)
+    except (OSError, ValueError):
+        pass
+    return None
+
+
 def _jsonable(x: Any) -> Any:
     if isinstance(x, dict):
         return {str(k): _jsonable(v) for k, v in x.items()}
@@ -290,6 +303,11 @@ def train_loop(run_dir: str | os.PathLike, *, config: dict[str, Any], model: tor
                                  f"({old.get(key)!r} in run, {config.get(key)!r} requested)")
         ckpt = run.load_checkpoint(next(model.parameters()).device)
         model.load_state_dict(ckpt["model"])
+        if (old.get("init_weights") or {}).get("frozen_bn"):
+            from monodbh.models.training.onnx_init import freeze_bn
+
+            freeze_bn(model)
+        config = dict(config, init_weights=old.get("init_weights")) if old.get("init_weights") else config
         optimizer.load_state_dict(ckpt["optim"])
         if scheduler is not None and ckpt.get("scheduler") is not None:
             scheduler.load_state_dict(ckpt["scheduler"])
@@ -303,7 +321,21 @@ def train_loop(run_dir: str | os.PathLike, *, config: dict[str, Any], model: tor
         if run.log_path.exists():
             run.log_path.unlink()
         seed_everything(int(config["seed"]))
-        if init_weights:
+        if init_weights and str(init_weights).endswith(".onnx"):
+            # warm start from a shipped ONNX model (see training.onnx_init): its folded
+            # BatchNorms come back as identity + bias and stay frozen (eval) from now on
+            from monodbh.models.training.onnx_init import freeze_bn, load_onnx_into
+
+            info = load_onnx_into(model, init_weights)
+            n_bn = freeze_bn(model) if info["folded_bn"] else 0
+            config = dict(config, init_weights={
+                "file": str(init_weights), "from_step": _onnx_steps(init_weights),
+                "rel_l2": info["rel_l2"], "unrecovered": info["missing"], "frozen_bn": n_bn > 0})
+            if verbose:
+                print(f"init from {init_weights}: {info['matched']}/{info['n_float_keys']} tensors, "
+                      f"outputs reproduced to {info['rel_l2']:.2%} rel. L2, {n_bn} BatchNorms frozen",
+                      flush=True)
+        elif init_weights:
             # warm start from a packed weights file (see pack_weights): weights only, fresh
             # optimiser and schedule
             w = load_packed_weights(init_weights, config["kind"], config["size"])
