@@ -55,11 +55,12 @@ def export(
     tolerance: float = typer.Option(0.03, "--tolerance", help="Max relative loss of the task metric for int8."),
     val: Optional[List[Path]] = typer.Option(None, "--val", help="Evaluation folder(s)."),
     n_eval: Optional[int] = typer.Option(None, "--n-eval", min=1, help="Evaluation samples (default: --n-calib)."),
+    force: bool = typer.Option(False, "--force", help="Ship even if the shipped model scores better on the same data."),
 ) -> None:
     """Export a run to ONNX fp32 and int8 (onnxruntime.quantization), print fp32-vs-int8 tables."""
     from monodbh.models.export.cli_impl import export_run
     export_run(run_dir, ship=ship, n_calib=n_calib, tolerance=tolerance, n_eval=n_eval,
-               val_data=[str(p) for p in val] if val else None)
+               val_data=[str(p) for p in val] if val else None, force=force)
 
 
 def train_pack(

@@ -107,6 +107,13 @@ def test_export_run_writes_report_and_ships(tmp_path):
     assert e["classes"][3] == "tree" and e["training"]["steps"] == 1
     assert set(e["validation"]) == {"fp32", "int8"} and e["latency_ms"]["int8"] > 0
     assert e["preprocess"][0]["mean"] == pytest.approx([0.485, 0.456, 0.406])
+    # exporting again scores the shipped model on the same data first (equal: shipped again)
+    rep2 = export_run(run, ship=True, n_calib=2, tolerance=1e6, max_rel_l2=1e6, n_runs=2,
+                      models_dir=models, recipes=[QuantRecipe("dyn", mode="dynamic")], data=data,
+                      val_data=data, verbose=False)
+    assert rep2["previous"]["sha256"] == e["sha256"]
+    assert rep2["previous"]["metrics"]["roped_iou"] == pytest.approx(rep2["int8"]["metrics"]["roped_iou"])
+    assert rep2["shipped"] is not None
     # an impossible tolerance: nothing shipped, user error, report still written
     from monodbh.models.runtime import MonodbhError
 

@@ -26,6 +26,9 @@ no ``image``), OpenCV pixel-centre convention:
     slice line.
 ``tree_mask``
     (H, W) bool, the measured tree's pixels (outlined).
+``vanishing``
+    :class:`~monodbh.toolkit.vanishing.VerticalEstimate`; its ``segments`` (N, 4), the
+    near-vertical lines that set "up", are drawn thin.
 ``slice_xy`` (alias ``slice_uv``)
     (M, 2) float metres, the slice's 3D points in the stem cross-section plane:
     column 0 across the view, column 1 along the view (away from the camera).
@@ -64,6 +67,7 @@ _CIRCLE = (60, 255, 60)
 _WHITE = (255, 255, 255)
 _ERROR = (255, 70, 70)
 _MASK = (120, 200, 255)
+_UPLINE = (150, 150, 255)   # lines of the vertical vanishing point
 
 
 def format_dbh(dbh_cm: Optional[float], sigma_cm: Optional[float], unicode: bool = True) -> str:
@@ -150,6 +154,13 @@ def _draw_geometry(img: np.ndarray, dbg: dict, result: MeasureResult, f: float,
             m = cv2.resize(m, (img.shape[1], img.shape[0]), interpolation=cv2.INTER_NEAREST)
         contours, _ = cv2.findContours(m, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
         cv2.drawContours(img, contours, -1, _MASK, max(1, lw // 2), aa)
+    vp = dbg.get("vanishing")
+    seg = getattr(vp, "segments", None)
+    if seg is not None and len(seg):
+        # the near-vertical lines that set "up" (vertical vanishing point), thin
+        for x1, y1, x2, y2 in np.asarray(seg, np.float64)[:400]:
+            a, b = _to_img(np.array([[x1, y1], [x2, y2]]), f)
+            cv2.line(img, _pt(a), _pt(b), _UPLINE, max(1, lw // 2), aa, sh)
     rope = _arr(dbg, "rope_polyline")
     if rope is not None and rope.ndim == 2 and len(rope) >= 2:
         cv2.polylines(img, [_to_img(rope, f)], False, _ROPE, lw + 1, aa, sh)

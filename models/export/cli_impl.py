@@ -108,7 +108,7 @@ def export_run(run_dir: str | os.PathLike, ship: bool = False, n_calib: int = 32
                recipes: Sequence[QuantRecipe] | None = None, n_runs: int = 20,
                threads: int = 2, models_dir: str | os.PathLike | None = None,
                data: Any = None, val_data: Any = None, max_rel_l2: float | None = None,
-               verbose: bool = True) -> dict[str, Any]:
+               verbose: bool = True, force: bool = False) -> dict[str, Any]:
     """Export a training run: fp32 ONNX (checked against torch), int8 search, report, ship.
 
     Parameters
@@ -128,6 +128,9 @@ def export_run(run_dir: str | os.PathLike, ship: bool = False, n_calib: int = 32
         Default :data:`~monodbh.models.export.quantize.DEFAULT_RECIPES`.
     models_dir : path, optional
         Ship destination (default: the installed ``monodbh/models`` folder).
+    force : bool
+        Ship even when the model shipped now scores better on the same evaluation data
+        (``report["previous"]``).
     max_rel_l2 : float, optional
         Also require the int8 outputs' relative L2 error to stay below this (always applied,
         at 0.05, when the fp32 task metric is ~0, i.e. an untrained model).
@@ -202,7 +205,32 @@ def export_run(run_dir: str | os.PathLike, ship: bool = False, n_calib: int = 32
         report["int8"] = {"path": str(int8_path), "recipe": res["chosen"],
                           "metrics": r.get("metrics", {}), "latency_ms": r["latency_ms"],
                           "drop": r["drop"], "rel_l2": r["rel_l2"], "size_mb": r["size_mb"]}
+    # the model shipped now, scored on the same evaluation data: a new model replaces it only
+    # when it is at least as good on the task metric (unless force)
+    shipped_path = (Path(models_dir) if models_dir is not None else MODELS_DIR) / f"{kind}_int8.onnx"
+    report["previous"] = None
+    if shipped_path.exists():
+        try:
+            prev_sess = make_session(shipped_path, threads=threads)
+            prev = metric_fn(lambda f, _s=prev_sess: run_session(_s, f))
+            report["previous"] = {"path": str(shipped_path), "sha256": sha256_file(shipped_path),
+                                  "metrics": prev}
+        except Exception as e:  # noqa: BLE001 - another architecture/spec: nothing to compare
+            report["previous"] = {"path": str(shipped_path), "error": f"{type(e).__name__}: {e}"}
+    if verbose and report["previous"] and "metrics" in report["previous"] and report["int8"]:
+        pm, nm = report["previous"]["metrics"], report["int8"]["metrics"]
+        keys = [k for k in nm if k in pm and isinstance(nm[k], (int, float))]
+        print(f"{'metric':<16}{'shipped int8':>14}{'new int8':>12}")
+        for k in keys:
+            print(f"{k:<16}{pm[k]:>14.4f}{nm[k]:>12.4f}")
     if ship:
+        prev_m = ((report.get("previous") or {}).get("metrics") or {}).get(spec.metric)
+        new_m = (report["int8"] or {}).get("metrics", {}).get(spec.metric)
+        if (not force and prev_m is not None and new_m is not None
+                and (new_m < prev_m if spec.higher_is_better else new_m > prev_m)):
+            atomic_write_text(out / "report.json", json.dumps(report, indent=2, default=str) + "\n")
+            raise _error(f"{run.path}: the new int8 model scores {spec.metric} {new_m:.4f}, the shipped "
+                         f"one {prev_m:.4f} on the same data; nothing shipped (--force to ship anyway)")
         if report["int8"] is None:
             atomic_write_text(out / "report.json", json.dumps(report, indent=2, default=str) + "\n")
             raise _error(f"{run.path}: no int8 model within {tolerance:.1%} of fp32 on "
