@@ -202,6 +202,29 @@ def _branch_tubes(tree: Tree):
     return out
 
 
+def _in_view(tree: Tree, cam, margin: float = 0.25) -> bool:
+    """Whether any part of the tree (axis and crown extent) may appear in the picture, with a
+    ``margin`` (fraction of the image size) around it."""
+    s = np.linspace(0.0, tree.height_m, 7)
+    axis = tree.base[None] + s[:, None] * tree.axis[None]
+    r = max(tree.crown_radius_m, 4 * tree.r_bh, 0.5)
+    offs = np.array([[0, 0, 0], [r, 0, 0], [-r, 0, 0], [0, r, 0], [0, -r, 0]], float)
+    P = (axis[:, None] + offs[None]).reshape(-1, 3)
+    pc = (P - cam.t_wc) @ cam.R_wc
+    if np.min(np.linalg.norm(pc, axis=1)) < 2.0 + r:
+        return True
+    front = pc[:, 2] > 0.05
+    if not front.any():
+        return False
+    uv = pc[front, :2] / pc[front, 2:3] * np.array([cam.K[0, 0], cam.K[1, 1]]) + cam.K[:2, 2]
+    mx, my = margin * cam.width, margin * cam.height
+    inside = ((uv[:, 0] > -mx) & (uv[:, 0] < cam.width + mx) & (uv[:, 1] > -my) & (uv[:, 1] < cam.height + my))
+    if inside.any():
+        return True
+    # a tree spanning the view (points on both sides of it, or above and below)
+    return bool((uv[:, 0].min() < 0 < uv[:, 0].max()) and (uv[:, 1].min() < cam.height and uv[:, 1].max() > 0))
+
+
 def build_meshes(scene: Scene, rng: np.random.Generator) -> MeshSet:
     """Build every mesh of the scene.
 
@@ -221,9 +244,12 @@ def build_meshes(scene: Scene, rng: np.random.Generator) -> MeshSet:
            kind="ground", tree=0, semantic=SEM_GROUND, instance=0)
     for t in scene.trees:
         inst = t.id
+        if t.lod < 2 and t.id != 1 and not _in_view(t, cam):
+            # out of the picture: only its shadow and sky occlusion matter, a coarse proxy will do
+            t.lod = 2
         v, f = _stem_mesh(t)
         ms.add(v, f, kind="stem", tree=t.id, semantic=SEM_TREE, instance=inst)
-        for v, f in _branch_tubes(t):
+        for v, f in (_branch_tubes(t) if t.lod < 2 else ()):
             ms.add(v, f, kind="branch", tree=t.id, semantic=SEM_TREE, instance=inst)
         cr = _crown(t, rng)
         if cr is not None and len(cr[0]):

@@ -99,6 +99,7 @@ class Tree:
     paint: dict | None = None   # red paint mark: theta0, dtheta, s0, s1
     branches: list = field(default_factory=list)  # (s, theta, elev, length, radius)
     seed: int = 0
+    _perimeter_cache: dict = field(default_factory=dict, repr=False, compare=False)
 
     # ----------------------------------------------------------------- geometry
     def shape(self, theta: np.ndarray) -> np.ndarray:
@@ -136,14 +137,21 @@ class Tree:
     def axis_point(self, s: float) -> np.ndarray:
         return self.base + s * self.axis
 
-    def perimeter_m(self, s: float = BREAST_HEIGHT_M, n: int = 1024, segments: int | None = None) -> float:
+    def perimeter_m(self, s: float = BREAST_HEIGHT_M, n: int = 512, segments: int | None = None) -> float:
         """Perimeter of the cross-section at ``s``: the continuous curve (``segments=None``)
         or the rendered polygon with ``segments`` vertices."""
         m = n if segments is None else segments
+        key = (float(s), m, self.r_bh, self.taper, self.flare, self.axis_ratio, self.ell_phase,
+               np.asarray(self.harmonics).tobytes())
+        hit = self._perimeter_cache.get(key)
+        if hit is not None:
+            return hit
         th = np.linspace(0, 2 * np.pi, m, endpoint=False)
         r = self.radius(th, np.full_like(th, s))
         x, y = r * np.cos(th), r * np.sin(th)
-        return float(np.hypot(np.diff(np.r_[x, x[0]]), np.diff(np.r_[y, y[0]])).sum())
+        out = float(np.hypot(np.diff(np.r_[x, x[0]]), np.diff(np.r_[y, y[0]])).sum())
+        self._perimeter_cache[key] = out
+        return out
 
     def dbh_m(self, segments: int | None = None) -> float:
         """Tape DBH: perimeter at 1.3 m along the stem divided by pi."""
