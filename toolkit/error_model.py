@@ -3,7 +3,11 @@
 Prints the table from which :data:`monodbh.toolkit.measure_core.SIGMA_MODEL_NETWORK` is set
 (run it on a folder rendered from seeds used neither for training nor for the benchmark)::
 
-    python -m monodbh.toolkit.error_model data/calset --json runs/error_model.json
+    python -m monodbh.toolkit.error_model data/calset --json runs/error_model.json [--write]
+
+``--write`` stores the measured sigmas in ``models/manifest.json`` (``error_model``, with the
+sha256 of the three shipped networks); ``dbh measure`` uses them for exactly those networks
+and falls back to the built-in table (flag ``sigma_model_default``) otherwise.
 
 For every roped photo the pipeline measured, each scale candidate (the distance to the stem
 axis along the axis ray it proposes) is compared with the true distance, and each DBH
@@ -20,7 +24,8 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["true_axis_distance", "true_up", "collect", "summarize", "main"]
+__all__ = ["true_axis_distance", "true_up", "collect", "summarize", "sigma_table", "tail_sigma",
+           "write_manifest_error_model", "main"]
 
 
 def true_axis_distance(meta: dict) -> float:
@@ -137,15 +142,75 @@ def _table(summary: dict) -> str:
     return "\n".join(lines)
 
 
+#: error-model keys of the scale sources and DBH estimators (see measure_core.SIGMA_MODEL_NETWORK)
+SOURCE_KEYS = {"network": "network", "ground_plane": "ground_plane_network",
+               "camera_height": "camera_height", "stem_base": "stem_base", "pose": "pose"}
+ESTIMATOR_KEYS = {"tangent": "width", "cloud": "cloud"}
+
+
+def tail_sigma(log_errors) -> float:
+    """A 1-sigma for heavy-tailed log errors: the larger of the robust estimate
+    (median |e| / 0.674) and the one the 90th percentile implies (q90 |e| / 1.645)."""
+    a = np.abs(np.asarray(log_errors, float))
+    return float(max(np.median(a) / 0.674, np.percentile(a, 90) / 1.645))
+
+
+def sigma_table(rows: list[dict], min_n: int = 8) -> dict:
+    """Per-source / per-estimator 1-sigma (relative) from measured rows (sources with at least
+    ``min_n`` measurements; the others keep the built-in values)."""
+    out = {}
+    ok = [r for r in rows if r.get("dbh_cm") is not None]
+    for src, key in SOURCE_KEYS.items():
+        v = [r["cand_log_err"][src] for r in ok if src in r["cand_log_err"]]
+        if len(v) >= min_n:
+            out[key] = tail_sigma(v)
+    for est, key in ESTIMATOR_KEYS.items():
+        v = [r["est_angular_log_err"][est] for r in ok if est in r["est_angular_log_err"]]
+        if len(v) >= min_n:
+            out[key] = tail_sigma(v)
+    return out
+
+
+def write_manifest_error_model(sigma: dict, folder: str, n: int, manifest_path: str | Path | None = None) -> Path:
+    """Store ``sigma`` as ``manifest["error_model"]`` for the models shipped now (their sha256)."""
+    import datetime as dt
+    import os
+    import tempfile
+
+    from monodbh.models.runtime import MANIFEST_PATH
+
+    p = Path(manifest_path) if manifest_path else Path(MANIFEST_PATH)
+    man = json.loads(p.read_text())
+    models = man.get("models", {})
+    man["error_model"] = {
+        "sigma": {k: round(float(v), 4) for k, v in sorted(sigma.items())},
+        "models": {k: models[k].get("sha256") for k in ("segmenter", "cden", "treenet")},
+        "data": str(folder), "n_measured": int(n),
+        "computed_at": dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
+        "method": "per source: max(median|ln err| / 0.674, q90|ln err| / 1.645)",
+    }
+    fd, tmp = tempfile.mkstemp(dir=p.parent, suffix=".tmp")
+    with os.fdopen(fd, "w") as f:
+        f.write(json.dumps(man, indent=2, sort_keys=True) + "\n")
+    os.replace(tmp, p)
+    return p
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m monodbh.toolkit.error_model", description=__doc__.split("\n")[0])
     ap.add_argument("folder")
     ap.add_argument("--limit", type=int)
     ap.add_argument("--json", help="write rows and summary here")
+    ap.add_argument("--write", action="store_true",
+                    help="store the measured sigmas in models/manifest.json for the shipped models")
     a = ap.parse_args(argv)
     rows = collect(a.folder, a.limit)
     summary = summarize(rows)
     print(_table(summary))
+    sig = sigma_table(rows)
+    print("sigma (relative, 1-sigma): " + ", ".join(f"{k} {v:.3f}" for k, v in sorted(sig.items())))
+    if a.write:
+        print(f"written to {write_manifest_error_model(sig, a.folder, summary['n_measured'])}")
     if a.json:
         Path(a.json).write_text(json.dumps(dict(summary=summary, rows=rows), indent=1))
     return 0

@@ -96,6 +96,7 @@ class Perception:
     edge_search_px: float = 3.0     # how far from the mask border trunk edges are searched (pixels)
     edge_mask: np.ndarray | None = None  # (H, W) bool mask guiding the edge search (default tree_mask)
     use_vanishing: bool = True      # estimate "up" from the vertical vanishing point (no pose)
+    sigma_network: dict | None = None  # measured error model of the shipped networks (manifest)
     extra: dict = field(default_factory=dict)
 
 
@@ -159,6 +160,7 @@ def measure_from_perception(perc: Perception, photo: str = "", *, timings: dict 
     cam = perc.camera
     gray = perc.rgb.astype(np.float32).mean(2)
     net = perc.source == "network"      # network perception (vs ground truth): wider error model
+    SN = {**SIGMA_MODEL_NETWORK, **(perc.sigma_network or {})}
     emask = perc.tree_mask if perc.edge_mask is None else perc.edge_mask
     edges = trunk_edges(gray, emask, perc.rope_xy, perc.rope_dir, rope_half_px=perc.rope_half_px,
                         search_px=perc.edge_search_px)
@@ -242,7 +244,7 @@ def measure_from_perception(perc: Perception, photo: str = "", *, timings: dict 
             lt, lb, resid = metrology_distance(r_A, rb2, v, ROPE_HEIGHT_M)
             src = "pose" if "pose" in up_sources else "stem_base"
             if lt > 0:
-                cands[src] = (lt, (SIGMA_MODEL_NETWORK if net else SIGMA_MODEL)[src])
+                cands[src] = (lt, (SN if net else SIGMA_MODEL)[src])
     else:
         flags.append(f"stem_base_{base_status}")
     if "pose" in up_sources and "pose" not in cands:
@@ -272,7 +274,7 @@ def measure_from_perception(perc: Perception, photo: str = "", *, timings: dict 
                 if hA > 1e-6 and nv > 0.5:
                     s = ROPE_HEIGHT_M * nv / hA
                     # conditioning: relative height of the rope vs plane fit noise
-                    sig = (SIGMA_MODEL_NETWORK if net else SIGMA_MODEL)[gp_key] + plane.rms_m / max(hA, 1e-6)
+                    sig = (SN if net else SIGMA_MODEL)[gp_key] + plane.rms_m / max(hA, 1e-6)
                     cands["ground_plane"] = (s * lam_axis, sig)
                 h_cam = float(plane.c)
                 u_vp = up_sources.get("vanishing")
@@ -284,12 +286,12 @@ def measure_from_perception(perc: Perception, photo: str = "", *, timings: dict 
                         h_cam = float(np.median(hh[keep]))
                 if "pose" not in up_sources and not perc.depth_is_metric and h_cam > 1e-6:
                     # handheld prior: the phone is held 1.1-1.9 m above the ground
-                    sig = np.hypot(SIGMA_MODEL_NETWORK["camera_height"], plane.rms_m / h_cam)
+                    sig = np.hypot(SN["camera_height"], plane.rms_m / h_cam)
                     cands["camera_height"] = (CAMERA_HEIGHT_PRIOR_M / h_cam * lam_axis, float(sig))
             if perc.depth_is_metric:
                 cands["depth_gt"] = (lam_axis, 0.005)
             else:
-                cands["network"] = (lam_axis, SIGMA_MODEL_NETWORK["network"])
+                cands["network"] = (lam_axis, SN["network"])
     if not cands:
         res.error = "cannot set the metric scale: no stem base, ground plane, pose or depth"
         return res
@@ -326,7 +328,7 @@ def measure_from_perception(perc: Perception, photo: str = "", *, timings: dict 
     est["tangent"] = d_tan
     edge_rel = np.hypot(SIGMA_MODEL["edge_px"], edges.edge_rms_px) * np.sqrt(2) / max(edges.width_px, 1.0)
     sig["tangent"] = np.sqrt(SIGMA_MODEL["ovality"] ** 2 + edge_rel ** 2
-                             + (SIGMA_MODEL_NETWORK["width"] ** 2 if net else 0.0))
+                             + (SN["width"] ** 2 if net else 0.0))
     cloud_fit = None
     if perc.z1 is not None or perc.silhouette_fn is not None:
         cloud_fit, slice_uv = _cloud_circle(perc, edges, A, v, lam, r_A)
@@ -334,7 +336,7 @@ def measure_from_perception(perc: Perception, photo: str = "", *, timings: dict 
             est["cloud"] = 2 * cloud_fit.r
             arc_pen = 0.02 * max(0.0, (300 - cloud_fit.arc_deg) / 120)
             sig["cloud"] = np.sqrt(SIGMA_MODEL["ovality"] ** 2 * 0.5 + SIGMA_MODEL["cloud_extra"] ** 2 + arc_pen ** 2
-                                   + edge_rel ** 2 + (SIGMA_MODEL_NETWORK["cloud"] ** 2 if net else 0.0))
+                                   + edge_rel ** 2 + (SN["cloud"] ** 2 if net else 0.0))
             res.debug["slice_uv"] = slice_uv
             res.debug["circle"] = (cloud_fit.xc, cloud_fit.yc, cloud_fit.r)
             if cloud_fit.arc_deg < 180:

@@ -56,6 +56,12 @@ class Session:
         self.depth = DepthPredictor(str(path_of("cden")), threads=threads)
         self.trees = TreePredictor(str(path_of("treenet")), threads=threads)
         self.models_dir = mdir
+        # the error model measured for exactly these networks (python -m monodbh.toolkit.error_model
+        # FOLDER --write): per-source 1-sigma; stale (built-in defaults, flagged) after retraining
+        em = manifest.get("error_model") or {}
+        shipped = {k: models[k].get("sha256") for k in ("segmenter", "cden", "treenet")}
+        self.sigma_network = em.get("sigma") if em.get("models") == shipped else None
+        self.error_model_stale = bool(em) and self.sigma_network is None
         self.load_ms = 1000 * (time.perf_counter() - t0)
 
 
@@ -251,8 +257,11 @@ def _measure(path, rgb, camera, pick_xy, want_cloud, want_debug, sess: Session, 
                       rope_dir=np.asarray(rope.direction, float), rope_half_px=max(0.5, rope.thickness_px / 2),
                       tree_mask=tree_mask, ground_mask=ground, depth=depth, depth_is_metric=False,
                       silhouette_fn=silhouette_fn, source="network",
-                      edge_search_px=max(3.0, 0.5 * cell), edge_mask=edge_mask)
+                      edge_search_px=max(3.0, 0.5 * cell), edge_mask=edge_mask,
+                      sigma_network=sess.sigma_network)
     res = measure_from_perception(perc, str(path), timings=tm)
+    if sess.sigma_network is None:
+        flags_extra.append("sigma_model_default")     # no error model measured for these networks
     res.flags = list(res.flags or []) + flags_extra
     res.tree_id = int(tid)
     if res.rope_xy is not None:

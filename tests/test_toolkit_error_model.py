@@ -1,0 +1,45 @@
+"""The measured error model: tail-aware sigmas, stored per shipped-model set in the manifest."""
+import json
+import shutil
+
+import numpy as np
+import pytest
+
+from monodbh.toolkit.error_model import sigma_table, tail_sigma, write_manifest_error_model
+
+
+def test_tail_sigma_gaussian_and_heavy_tail():
+    rng = np.random.default_rng(0)
+    g = rng.normal(0, 0.1, 4000)
+    assert tail_sigma(g) == pytest.approx(0.1, rel=0.06)
+    heavy = np.r_[rng.normal(0, 0.1, 800), rng.normal(0, 0.6, 200)]     # 20 % outliers
+    s = tail_sigma(heavy)
+    assert s > 0.15 and np.mean(np.abs(heavy) <= 2 * s) >= 0.9
+
+
+def test_sigma_table_keys_and_min_n():
+    rows = [dict(dbh_cm=30.0, cand_log_err={"network": 0.1 * (-1) ** i, "stem_base": 0.5},
+                 est_angular_log_err={"tangent": 0.05, "cloud": -0.2}) for i in range(10)]
+    rows[0]["cand_log_err"].pop("stem_base")
+    t = sigma_table(rows, min_n=10)
+    assert set(t) == {"network", "width", "cloud"}            # stem_base measured 9 times only
+    assert t["network"] == pytest.approx(0.1 / 0.674, rel=1e-6)
+
+
+def test_session_uses_error_model_only_for_its_models(tmp_path):
+    from monodbh.models.runtime import MANIFEST_PATH
+    from monodbh.toolkit.pipeline import Session
+
+    src = MANIFEST_PATH.parent
+    for f in src.glob("*.onnx"):
+        (tmp_path / f.name).symlink_to(f)
+    shutil.copy(MANIFEST_PATH, tmp_path / "manifest.json")
+    sig = {"network": 0.2, "width": 0.1}
+    write_manifest_error_model(sig, "data/calset", 42, tmp_path / "manifest.json")
+    s = Session(tmp_path)
+    assert s.sigma_network == sig and not s.error_model_stale
+    man = json.loads((tmp_path / "manifest.json").read_text())
+    man["models"]["cden"]["sha256"] = "0" * 64                # the depth network was retrained
+    (tmp_path / "manifest.json").write_text(json.dumps(man))
+    s = Session(tmp_path)
+    assert s.sigma_network is None and s.error_model_stale
