@@ -206,7 +206,20 @@ def tree_example(sample: dict[str, Any], crop: dict[str, Any], P: int,
     return {"crop": np.ascontiguousarray(x, np.float32),
             "target": np.ascontiguousarray(target, np.float32),
             "valid": np.ascontiguousarray(valid[None]), "z_ref": float(crop["z_ref"]),
-            "side_px": float(S), "fx": float(crop["fx"])}
+            "side_px": float(S), "fx": float(crop["fx"]), "axis_ratio": _axis_ratio(sample, tid)}
+
+
+def _axis_ratio(sample: dict[str, Any], tid: int) -> float:
+    """Minor / major axis of the tree's cross-section (1 = round; nan when unknown)."""
+    for t in (sample.get("meta") or {}).get("trees", []):
+        if t.get("id") == tid:
+            return float(t.get("axis_ratio", np.nan))
+    return float("nan")
+
+
+#: ovality bins of the evaluation report (axis ratio lower edges): "g_relerr_q85" covers
+#: axis ratios in [0.85, 0.90), and so on
+OVALITY_BINS = (0.0, 0.85, 0.90, 0.95, 0.98)
 
 
 def tree_metrics(pred: np.ndarray, ex: dict[str, Any]) -> dict[str, float]:
@@ -483,4 +496,15 @@ def evaluate(predict: Callable[[dict[str, np.ndarray]], dict[str, np.ndarray]], 
     src = _eval_source(data, seed)
     exs = _examples_from(src, 0, n, seed, cfg, P, K_INFER, indices=pick_indices(src, n, seed))
     ms = [tree_metrics(predict({"crop": e["crop"][None]})["silhouette"][0], e) for e in exs]
-    return _mean(ms)
+    out = _mean(ms)
+    # how the thickness error grows with the stem's ovality (one view sees one width only)
+    q = np.array([e.get("axis_ratio", np.nan) for e in exs])
+    edges = list(OVALITY_BINS) + [1.01]
+    for lo, hi in zip(edges[:-1], edges[1:]):
+        sel = [m for m, qq in zip(ms, q) if lo <= qq < hi and "g_relerr" in m]
+        if sel:
+            tag = f"q{int(round(lo * 100)):02d}"
+            out[f"g_relerr_{tag}"] = float(np.mean([m["g_relerr"] for m in sel]))
+            out[f"g_within10_{tag}"] = float(np.mean([m["g_within10"] for m in sel]))
+            out[f"n_{tag}"] = float(len(sel))
+    return out
