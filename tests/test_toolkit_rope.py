@@ -245,3 +245,33 @@ def test_faint_rope_not_crowded_out_by_red_clutter():
     assert any(abs(c.center_xy[0] - cx) <= 15 and abs(c.center_xy[1] - cy) <= 6 for c in det.candidates)
     picked = detect_rope(img, pick_xy=(cx, cy))
     assert picked and abs(picked.center_xy[0] - cx) <= 15 and abs(picked.center_xy[1] - cy) <= 6
+
+
+def test_weak_candidate_reported_only_with_weak_score():
+    """A faint rope below ``min_score`` is returned (``weak=True``) only when ``weak_score`` asks."""
+    rng = np.random.default_rng(5)
+    img = np.empty((480, 640, 3), np.uint8)
+    img[:] = (120, 124, 118)
+    img = np.clip(img + rng.normal(0, 4, img.shape), 0, 255).astype(np.uint8)
+    img[:, 280:360] = (88, 84, 80)
+    img, (cx, cy) = _draw_rope(img, 280, 360, 240, 2.0, color=(104, 74, 72))
+    img = _jpeg(img)
+    strict = detect_rope(img, min_score=50.0)
+    assert not strict and not strict.weak
+    d = detect_rope(img, min_score=50.0, weak_score=-50.0)
+    assert d and d.weak and abs(d.center_xy[0] - cx) <= 15 and abs(d.center_xy[1] - cy) <= 6
+
+
+def test_rope_across_trunk_check():
+    from types import SimpleNamespace
+
+    from monodbh.toolkit.pipeline import rope_across_trunk
+
+    inst = np.zeros((200, 300), np.int32)
+    inst[:, 100:160] = 3                                       # a 60 px wide trunk
+    band = lambda x0, x1, y=100: SimpleNamespace(center_xy=((x0 + x1) / 2, y), direction=(1.0, 0.0),
+                                                 polyline=np.array([[x0, y], [x1, y]], np.float32))
+    assert rope_across_trunk(band(100, 160), inst, cell=4)     # spans the trunk
+    assert not rope_across_trunk(band(120, 130), inst, cell=4)  # a short dash on bark
+    assert not rope_across_trunk(band(10, 60), inst, cell=4)    # off the trunk
+    assert not rope_across_trunk(band(20, 290), inst, cell=4)   # far wider than the trunk

@@ -124,6 +124,7 @@ class RopeDetection:
     score : score of the chosen candidate (0 when none).
     candidates : scored alternatives, best first (for ``--pick`` and error messages).
     ambiguous : two candidates scored within the ambiguity margin (then ``found`` is False).
+    weak : found only below ``min_score`` (above ``weak_score``): to be confirmed by the caller.
     timings_ms : time per stage.
     """
     found: bool
@@ -137,6 +138,7 @@ class RopeDetection:
     candidates: list[RopeCandidate] = field(default_factory=list, repr=False)
     ambiguous: bool = False
     timings_ms: dict = field(default_factory=dict, repr=False)
+    weak: bool = False
 
     def __bool__(self) -> bool:
         return bool(self.found)
@@ -676,7 +678,8 @@ def detect_rope(rgb: np.ndarray, tree_mask: np.ndarray | None = None, *,
                 height_check: Callable[[RopeCandidate], bool] | None = None,
                 work_long_side: int = 1600, min_contrast: float = 0.015, min_score: float = 1.0,
                 ambiguity_margin: float = 1.0, nearer_ratio: float = 1.6, max_candidates: int = 50,
-                max_segments: int = 400, weights: dict | None = None) -> RopeDetection:
+                max_segments: int = 400, weights: dict | None = None,
+                weak_score: float | None = None) -> RopeDetection:
     """Find the red rope tied around a trunk.
 
     Parameters
@@ -702,6 +705,10 @@ def detect_rope(rgb: np.ndarray, tree_mask: np.ndarray | None = None, *,
         ``max_candidates // 2`` more from regions none of them occupies, scored ``_DEEP_PRIOR`` lower.
     max_segments : at most this many line pieces (the most contrasted) are linked into bands.
     weights : override :data:`SCORE_WEIGHTS`.
+    weak_score : when no candidate scores above ``min_score``, the best one above
+        ``weak_score`` is returned with ``weak=True`` (rivals judged among those), for the
+        caller to verify with other evidence (the pipeline: does it lie across a segmented
+        trunk?). ``None``: no weak results.
 
     Returns
     -------
@@ -786,12 +793,15 @@ def detect_rope(rgb: np.ndarray, tree_mask: np.ndarray | None = None, *,
     # choose; a chosen band whose full-resolution refinement is not band-like (a blob) is dropped
     for _ in range(3):
         best = _choose(cands, pick_xy, min_score, ambiguity_margin, nearer_ratio)
+        if best is None and weak_score is not None and pick_xy is None:
+            best = _choose(cands, None, weak_score, ambiguity_margin, nearer_ratio)
         if best is None or isinstance(best, str):
             break
         det = _refine(rgb, best, tree_mask)
         arc = float(np.hypot(*np.diff(det.polyline, axis=0).T).sum()) + 1.0
         if arc >= _MIN_ELONGATION * max(det.thickness_px, 0.7):
             det.candidates = cands
+            det.weak = pick_xy is None and not best.score > min_score
             lap("refine")
             tm["total"] = round(1000 * (time.perf_counter() - t0), 2)
             det.timings_ms = tm
