@@ -264,6 +264,9 @@ def measure_from_perception(perc: Perception, photo: str = "", *, timings: dict 
         # depth of the axis at the rope from the depth map: front surface + radius
         line = np.array([edges.left_xy + f * (edges.right_xy - edges.left_xy) for f in (0.35, 0.5, 0.65)])
         zs = [_depth_at(perc.depth, perc.tree_mask, p + 3 * perc.rope_half_px * edges.along, 2) for p in line]
+        if not np.isfinite(zs).any() and perc.edge_mask is not None:
+            # the coarse tree mask misses the stem at the rope: the stem between its edges
+            zs = [_depth_at(perc.depth, perc.edge_mask, p + 3 * perc.rope_half_px * edges.along, 2) for p in line]
         z_front = float(np.nanmedian(zs)) if np.isfinite(zs).any() else np.nan
         if np.isfinite(z_front):
             lam_front = z_front / max(r_A[2], 1e-6)
