@@ -335,6 +335,12 @@ def _measure(path, rgb, camera, pick_xy, want_cloud, want_debug, sess: Session, 
     if want_debug:
         res.debug.update(image=img, image_scale=(sx, sy), rope_polyline=np.asarray(rope.polyline),
                          tree_mask=tree_mask)
+    # the geometry step's own time (it called the tree network and the vanishing point)
+    for k in ("vanishing", "geometry"):
+        if k in res.timings_ms:
+            tm[k] = res.timings_ms[k]
+    if "geometry" in tm:
+        tm["geometry"] = max(0.0, tm["geometry"] - tm.get("trees", 0.0) - tm.get("vanishing", 0.0))
     res.timings_ms = tm
     res.timings_ms["total"] = sum(v for k, v in tm.items() if k != "total")
     return res

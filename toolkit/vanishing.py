@@ -139,26 +139,21 @@ def vertical_direction(gray: np.ndarray, K: np.ndarray, *, mask: np.ndarray | No
     w = L / L.sum()
     thr = np.sin(np.radians(inlier_deg))
     rng = np.random.default_rng(seed)
-    best_u, best_s = None, -1.0
     p = w / w.sum()
     level = np.array([0.0, -1.0, 0.0])
-    for _ in range(iters):
-        i, j = rng.choice(n_seg, 2, replace=False, p=p)
-        u = np.cross(N[i], N[j])
-        nu = np.linalg.norm(u)
-        if nu < 1e-9:
-            continue
-        u /= nu
-        if u @ level < 0:
-            u = -u
-        if u @ level < np.cos(np.radians(40)):          # pitch / roll beyond any handheld photo
-            continue
-        s = w[np.abs(N @ u) < thr].sum()
-        if s > best_s:
-            best_s, best_u = s, u
-    if best_u is None:
+    # all RANSAC hypotheses at once: pairs drawn by length, u = n_i x n_j
+    i = rng.choice(n_seg, iters, p=p)
+    j = rng.choice(n_seg, iters, p=p)
+    U = np.cross(N[i], N[j])
+    nu = np.linalg.norm(U, axis=1)
+    good = (i != j) & (nu > 1e-9)
+    U = U[good] / nu[good, None]
+    U *= np.where(U @ level < 0, -1.0, 1.0)[:, None]
+    U = U[U @ level >= np.cos(np.radians(40))]          # pitch / roll beyond any handheld photo
+    if not len(U):
         return VerticalEstimate(n_segments=n_seg, reason="no consistent vanishing direction")
-    u = best_u
+    support = (np.abs(N @ U.T) < thr).T.astype(np.float64) @ w      # (hypotheses,)
+    u = U[int(np.argmax(support))]
     thr_r = np.sin(np.radians(refine_deg))
     for _ in range(8):                                   # Cauchy-weighted least squares
         r = N @ u
