@@ -394,11 +394,22 @@ def render_scene(scene: Scene, rng: np.random.Generator, *, aa: bool = True, sha
                 e |= band
         band_all = band.ravel()
         n_aa = int(e.sum())
-        # 4 sub-samples in the rope band (its coverage decides the rope label), 2 on other
-        # object edges (leaves, trunk outlines): ~25 % less render time at the same look
+        # edges of stems and branches (the outlines the DBH is measured from), at the pixel or a
+        # 4-neighbour
+        kind_stem = np.array([ob["kind"] in ("stem", "branch", "log") for ob in ms.objects] + [False])
+        st = kind_stem[np.where(oid >= 0, oid, len(ms.objects))]
+        st_n = st.copy()
+        st_n[:, 1:] |= st[:, :-1]
+        st_n[:, :-1] |= st[:, 1:]
+        st_n[1:] |= st[:-1]
+        st_n[:-1] |= st[1:]
+        stem_e = st_n.ravel()
+        # 4 sub-samples in the rope band (its coverage decides the rope label), 2 on stem and
+        # branch outlines, 1 on the other edges (foliage, grass: a third of all pixels)
         groups = ((np.nonzero(e.ravel() & band_all)[0],
                    np.array([[-0.25, -0.25], [0.25, -0.25], [-0.25, 0.25], [0.25, 0.25]])),
-                  (np.nonzero(e.ravel() & ~band_all)[0], np.array([[-0.25, -0.25], [0.25, 0.25]])))
+                  (np.nonzero(e.ravel() & ~band_all & stem_e)[0], np.array([[-0.25, -0.25], [0.25, 0.25]])),
+                  (np.nonzero(e.ravel() & ~band_all & ~stem_e)[0], np.array([[0.25, -0.25]])))
         for ei, jit in groups:
             k = len(jit)
             if not len(ei):

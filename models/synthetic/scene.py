@@ -248,7 +248,11 @@ def _make_tree(rng, tid, xy, ground, species=None, dbh=None, lod=0):
         dead=bool(rng.random() < 0.05), seed=int(rng.integers(1 << 30)),
     )
     # scale r_bh so that the tape DBH (perimeter / pi) equals the sampled dbh exactly
-    t.r_bh *= dbh / t.dbh_m()
+    k = dbh / t.dbh_m()
+    t.r_bh *= k
+    # the cross-section at 1.3 m scales with r_bh: its perimeters are known without integrating
+    t._perimeter_cache = {(key[0], key[1], t.r_bh) + key[3:]: v * k
+                          for key, v in t._perimeter_cache.items()}
     nb = int(rng.integers(2, 9)) if not conifer else int(rng.integers(6, 16))
     for _ in range(nb if lod < 2 else 0):
         s = rng.uniform(max(1.8, crown_base * 0.6), height * 0.9)
