@@ -201,3 +201,17 @@ def test_cli_synth_writes_dataset_and_contact_sheet(tmp_path):
     assert (tmp_path / "ds" / "contact_sheet.png").stat().st_size > 1000
     r = CliRunner().invoke(app, ["synth", str(tmp_path / "ds"), "--size", "0x0"])
     assert r.exit_code == 2
+
+
+def test_trees_in_the_picture_keep_full_detail(roped_sample):
+    """Only trees outside the picture get the coarse shadow proxy (lod 2 without branches)."""
+    from monodbh.models.synthetic.geometry import _in_view
+
+    scene, meta = roped_sample["scene"], roped_sample["meta"]
+    by_id = {t.id: t for t in scene.trees}
+    seen = [r for r in meta["trees"] if r["pixels"] > 0]
+    assert seen
+    for r in seen:
+        assert _in_view(by_id[r["id"]], scene.camera), r["id"]
+    # and some trees were out of view (the proxy saves work in a typical stand)
+    assert any(not _in_view(t, scene.camera) for t in scene.trees)
