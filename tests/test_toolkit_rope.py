@@ -275,3 +275,15 @@ def test_rope_across_trunk_check():
     assert not rope_across_trunk(band(120, 130), inst, cell=4)  # a short dash on bark
     assert not rope_across_trunk(band(10, 60), inst, cell=4)    # off the trunk
     assert not rope_across_trunk(band(20, 290), inst, cell=4)   # far wider than the trunk
+
+
+def test_overlapping_bands_are_one_rope_not_rivals():
+    from monodbh.toolkit.rope import RopeCandidate, _overlapping
+
+    a = RopeCandidate(center_xy=(406.0, 687.6), direction=(1.0, 0.03), length_px=89.0, thickness_px=3.2)
+    b = RopeCandidate(center_xy=(351.2, 687.0), direction=(1.0, 0.0), length_px=110.0, thickness_px=3.3)
+    far = RopeCandidate(center_xy=(682.0, 205.0), direction=(0.98, -0.2), length_px=43.0, thickness_px=1.8)
+    side = RopeCandidate(center_xy=(520.0, 688.0), direction=(1.0, 0.0), length_px=60.0, thickness_px=3.0)
+    assert _overlapping(a, b) and _overlapping(b, a)
+    assert not _overlapping(a, far)
+    assert not _overlapping(a, side)        # the next trunk's rope at the same height

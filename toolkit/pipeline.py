@@ -262,6 +262,13 @@ def _measure(path, rgb, camera, pick_xy, want_cloud, want_debug, sess: Session, 
     t = time.perf_counter()
     pick = None if pick_xy is None else (pick_xy[0] * sx, pick_xy[1] * sy)
     rope = detect_rope(img, None, pick_xy=pick, weak_score=ROPE_WEAK_SCORE)
+    if not rope and rope.ambiguous and pick is None:
+        # two bands score alike: when exactly one of the leading ones lies across a segmented
+        # trunk, that one is the rope (the other is e.g. red paint, tape or clothing)
+        top = [c for c in rope.candidates if c.score >= rope.candidates[0].score - 1.0][:4]
+        on = [c for c in top if rope_across_trunk(c, seg.instance, cell)]
+        if len(on) == 1:
+            rope = detect_rope(img, None, pick_xy=on[0].center_xy)
     tm["rope"] = 1000 * (time.perf_counter() - t)
     if rope and rope.weak and not rope_across_trunk(rope, seg.instance, cell):
         x, y = rope.center_xy

@@ -830,6 +830,9 @@ def _choose(cands: list[RopeCandidate], pick_xy, min_score: float, ambiguity_mar
     rivals = [c for c in ropes[1:] if c.score >= best.score - ambiguity_margin]
     if not rivals:
         return best
+    if all(_overlapping(best, c) for c in rivals):
+        # the same rope found more than once (pyramid levels, pieces): the longest band
+        return max([best] + rivals, key=lambda c: c.length_px)
     group = [best] + rivals
     longest = max(group, key=lambda c: c.length_px)
     if all(longest.length_px >= nearer_ratio * c.length_px for c in group if c is not longest):
@@ -837,6 +840,21 @@ def _choose(cands: list[RopeCandidate], pick_xy, min_score: float, ambiguity_mar
     c1, c2 = group[0], group[1]
     return (f"two rope candidates at ({c1.center_xy[0]:.0f},{c1.center_xy[1]:.0f}) and "
             f"({c2.center_xy[0]:.0f},{c2.center_xy[1]:.0f}) (e.g. two roped trees); choose one with --pick X,Y")
+
+
+def _overlapping(a: RopeCandidate, b: RopeCandidate) -> bool:
+    """Whether two bands lie on one line and overlap along it (the same rope found twice, e.g.
+    at two pyramid levels or in two pieces): not rivals. Ropes on two trunks cannot overlap."""
+    u = np.asarray(a.direction, np.float64)
+    u = u / max(np.linalg.norm(u), 1e-9)
+    v = np.asarray(b.direction, np.float64)
+    v = v / max(np.linalg.norm(v), 1e-9)
+    if abs(u @ v) < np.cos(np.radians(15)):
+        return False
+    d = np.asarray(b.center_xy, np.float64) - np.asarray(a.center_xy, np.float64)
+    perp = abs(d[0] * u[1] - d[1] * u[0])
+    along = abs(d @ u)
+    return perp <= max(3.0, 2.0 * (a.thickness_px + b.thickness_px)) and along < 0.5 * (a.length_px + b.length_px)
 
 
 def _downscale(rgb: np.ndarray, long_side: int) -> np.ndarray:
