@@ -174,10 +174,9 @@ def sigma_table(rows: list[dict], min_n: int = 8) -> dict:
 def write_manifest_error_model(sigma: dict, folder: str, n: int, manifest_path: str | Path | None = None) -> Path:
     """Store ``sigma`` as ``manifest["error_model"]`` for the models shipped now (their sha256)."""
     import datetime as dt
-    import os
-    import tempfile
 
     from monodbh.models.runtime import MANIFEST_PATH
+    from monodbh.toolkit.batch import atomic_write_text
 
     p = Path(manifest_path) if manifest_path else Path(MANIFEST_PATH)
     man = json.loads(p.read_text())
@@ -189,10 +188,7 @@ def write_manifest_error_model(sigma: dict, folder: str, n: int, manifest_path: 
         "computed_at": dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
         "method": "per source: max(median|ln err| / 0.674, q90|ln err| / 1.645)",
     }
-    fd, tmp = tempfile.mkstemp(dir=p.parent, suffix=".tmp")
-    with os.fdopen(fd, "w") as f:
-        f.write(json.dumps(man, indent=2, sort_keys=True) + "\n")
-    os.replace(tmp, p)
+    atomic_write_text(p, json.dumps(man, indent=2, sort_keys=True) + "\n")
     return p
 
 

@@ -128,7 +128,6 @@ def _roped_instance(instance: np.ndarray, xy, radius: int = 6) -> int:
 #: 54; 8 bands in [0, 1): the trunk check accepted 4 (all true ropes) and refused 3 (1 true
 #: rope). On the 24 real rope-free photos: 1 false band above 1.0; of 4 in [0, 1) it accepted 1.
 ROPE_WEAK_SCORE = 0.0
-ROPE_WEAK_SCORE = 0.0
 
 
 def rope_across_trunk(rope, instance: np.ndarray, cell: float) -> bool:
