@@ -8,6 +8,8 @@ per-tree nearest/farthest surface depth z1/z2) comes from the same rays.
 """
 from __future__ import annotations
 
+import time
+
 import cv2
 import numpy as np
 from embreex import rtcore_scene
@@ -329,10 +331,19 @@ def render_scene(scene: Scene, rng: np.random.Generator, *, aa: bool = True, sha
     """
     cam = scene.camera
     W, H = cam.width, cam.height
+    tm: dict[str, float] = {}
+    t_last = [time.perf_counter()]
+
+    def lap(name):
+        t = time.perf_counter()
+        tm[name] = tm.get(name, 0.0) + 1000 * (t - t_last[0])
+        t_last[0] = t
     ms = build_meshes(scene, rng)
     V, F, face_obj = ms.arrays()
+    lap("meshes")
     tracer = Tracer(V, F, cam.t_wc)
     sh = _Shader(scene, ms, tracer, face_obj, rng)
+    lap("bvh")
 
     v, u = np.mgrid[0:H, 0:W]
     px = np.stack([u.ravel(), v.ravel()], 1).astype(np.float64)
@@ -340,6 +351,7 @@ def render_scene(scene: Scene, rng: np.random.Generator, *, aa: bool = True, sha
     d = dc @ cam.R_wc.T
     o = np.broadcast_to(cam.t_wc, d.shape).copy()
     h = sh.trace(o, d)
+    lap("primary")
 
     # canopy openness (one cosine-weighted sky ray per hit, then smoothed in image space)
     # (every other pixel in each direction, then smoothed and upsampled)
@@ -360,7 +372,9 @@ def render_scene(scene: Scene, rng: np.random.Generator, *, aa: bool = True, sha
         small = aomap.reshape(H, W)[::2, ::2]
         small = cv2.blur(small, (5, 5))
         ao = cv2.resize(small, (W, H), interpolation=cv2.INTER_LINEAR).ravel().astype(np.float64)
+    lap("ao")
     col = sh.shade(o, d, h, ao)
+    lap("shade")
 
     obj = h["obj"]
     sem = np.where(obj >= 0, sh.obj_sem[np.maximum(obj, 0)], SEM_SKY).astype(np.uint8)
@@ -436,6 +450,7 @@ def render_scene(scene: Scene, rng: np.random.Generator, *, aa: bool = True, sha
                 sem[sel] = SEM_TREE
                 tt = hs["t"].reshape(-1, k)[rows, first]
                 depth[sel] = tt * dcs.reshape(-1, k, 3)[rows, first, 2]
+    lap("aa")
     rope = rope_cov >= 0.2
 
     # ---- z1 / z2 for tree pixels: nearest = visible hit; farthest = reversed ray, same tree only
@@ -485,15 +500,18 @@ def render_scene(scene: Scene, rng: np.random.Generator, *, aa: bool = True, sha
             todo = todo[other]
         z2[pix] = tb * dc[pix, 2]
 
+    lap("z2")
     lin = col.reshape(H, W, 3)
     img = _camera_post(rng, lin, scene.light)
     q = int(jpeg_quality if jpeg_quality is not None else rng.integers(72, 96))
     ok, buf = cv2.imencode(".jpg", cv2.cvtColor(img, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, q])
     rgb = cv2.cvtColor(cv2.imdecode(buf, cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
+    lap("post")
     return dict(
         rgb=rgb, jpeg=buf.tobytes(),
         depth=depth.reshape(H, W).astype(np.float32),
         semantic=sem.reshape(H, W), instance=inst.reshape(H, W), rope=rope.reshape(H, W),
         z1=z1.reshape(H, W).astype(np.float32), z2=z2.reshape(H, W).astype(np.float32),
         stats=dict(triangles=int(len(F)), aa_pixels=int(n_aa), jpeg_quality=q),
+        timings_ms=tm,
     )
