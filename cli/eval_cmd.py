@@ -123,7 +123,24 @@ def eval_metrics(records: Sequence[dict]) -> dict:
         "refusal_rate": len(refused) / len(norope) if norope else None,
         "false_measurements": len(norope) - len(refused),
         "failure_reasons": dict(sorted(reasons.items(), key=lambda kv: -kv[1])),
+        "by_scale_source": _by_source(meas),
     }
+
+
+def _by_source(meas: Sequence[dict]) -> dict:
+    """DBH accuracy grouped by the leading scale source (the first of ``scale_source``)."""
+    groups: dict[str, list] = {}
+    for r in meas:
+        key = str(r.get("scale_source") or "?").split("+")[0]
+        groups.setdefault(key, []).append(r)
+    out = {}
+    for k, rs in sorted(groups.items(), key=lambda kv: -len(kv[1])):
+        ae = [abs(float(r["dbh_cm"]) - float(r["gt_dbh_cm"])) for r in rs]
+        rel = [a / float(r["gt_dbh_cm"]) * 100.0 for a, r in zip(ae, rs) if r["gt_dbh_cm"] > 0]
+        cov = [float(a <= 2 * float(r["dbh_sigma_cm"])) for a, r in zip(ae, rs) if r.get("dbh_sigma_cm")]
+        out[k] = {"n": len(rs), "mae_cm": statistics.fmean(ae), "rel_mae_pct": statistics.fmean(rel) if rel else None,
+                  "coverage_2sigma": statistics.fmean(cov) if cov else None}
+    return out
 
 
 def _fmt(v: Any, fmt: str = "{:.2f}", pct: bool = False) -> str:
@@ -164,6 +181,14 @@ def _print_eval(m: dict, stages: dict, console) -> None:
         for k, v in stages.items():
             s.add_row(k, f"{v['mean']:.1f} ms", f"{v['median']:.1f} ms", str(v["n"]))
         console.print(s)
+    if m.get("by_scale_source"):
+        b = Table(title="by leading scale source", show_header=True, header_style="bold")
+        for c in ("source", "n", "MAE", "relative MAE", "|err| <= 2 sigma"):
+            b.add_column(c, justify="left" if c == "source" else "right")
+        for k, v in m["by_scale_source"].items():
+            b.add_row(k, str(v["n"]), _fmt(v["mae_cm"], "{:.2f} cm"), _fmt(v["rel_mae_pct"], "{:.1f} %"),
+                      _fmt(v["coverage_2sigma"], pct=True))
+        console.print(b)
     if m["failure_reasons"]:
         f = Table(title="failures on roped scenes", show_header=True, header_style="bold")
         f.add_column("count", justify="right")
@@ -171,6 +196,22 @@ def _print_eval(m: dict, stages: dict, console) -> None:
         for k, n in list(m["failure_reasons"].items())[:8]:
             f.add_row(str(n), k)
         console.print(f)
+
+
+def _simulated_tap(stem: Path, meta: dict, noise_px: float, index: int):
+    """The true stem-base pixel plus seeded noise where it is visible in the photo, else None."""
+    import numpy as np
+
+    from monodbh.toolkit.gt import true_base_pixel
+
+    if not meta.get("roped_tree"):
+        return None
+    with np.load(stem.with_suffix(".npz")) as z:
+        xy, status = true_base_pixel(meta, z["depth"])
+    if status != "visible":
+        return None
+    xy = xy + np.random.default_rng(index).normal(0.0, noise_px, 2)
+    return float(max(xy[0], 0.0)), float(max(xy[1], 0.0))
 
 
 def evaluate(
@@ -181,6 +222,11 @@ def evaluate(
                                             "times, per-sample rows) as JSON here.", show_default=False),
     gt_perception: bool = typer.Option(False, "--gt-perception", help="Give the pipeline the ground-"
                                        "truth masks and depth (gt=sample): the single-view floor."),
+    tap_base: bool = typer.Option(False, "--tap-base", help="Simulate a user who taps the stem base "
+                                  "(dbh measure --base) in every photo where it is visible: the true "
+                                  "base pixel plus Gaussian noise of --tap-noise-px."),
+    tap_noise_px: float = typer.Option(3.0, "--tap-noise-px", min=0.0, help="1-sigma of the simulated "
+                                       "tap, in pixels per axis (seeded per sample)."),
     workers: int = typer.Option(1, "--workers", "-j", min=1, help="Processes measuring in parallel."),
     out_dir: Optional[Path] = typer.Option(None, "--out-dir", help="Write overlays (and tree PLYs) here.",
                                            show_default=False),
@@ -202,11 +248,12 @@ def evaluate(
 
     if not folder.is_dir():
         raise fail(f"{folder}: no such folder", 2)
-    idx = list_synth_samples(folder, need_npz=gt_perception)
+    need_npz = gt_perception or tap_base
+    idx = list_synth_samples(folder, need_npz=need_npz)
     if limit:
         idx = idx[:limit]
     if not idx:
-        raise fail(f"{folder}: no samples (NNNNNN.jpg + .json{' + .npz' if gt_perception else ''})")
+        raise fail(f"{folder}: no samples (NNNNNN.jpg + .json{' + .npz' if need_npz else ''})")
     jobs, metas = [], []
     for n, i in enumerate(idx):
         stem = folder / f"{i:06d}"
@@ -217,8 +264,9 @@ def evaluate(
         except (OSError, ValueError, KeyError, TypeError, IndexError) as exc:
             raise fail(f"{stem.with_suffix('.json')}: bad sample record ({type(exc).__name__}: {exc})")
         metas.append((i, gt))
+        base_xy = _simulated_tap(stem, meta, tap_noise_px, i) if tap_base else None
         jobs.append(Job(n, str(stem.with_suffix(".jpg")), cam, gt=(str(folder), i) if gt_perception else None,
-                        out_dir=str(out_dir) if out_dir else None))
+                        base_xy=base_xy, out_dir=str(out_dir) if out_dir else None))
     backend = make_backend(measure_fn, session_factory, models_dir)
     if gt_perception:  # ground-truth perception needs no networks: run without models too
         import dataclasses
@@ -253,6 +301,8 @@ def evaluate(
     _print_eval(m, stages, Console())
     if json_out:
         report = {"folder": str(folder), "gt_perception": gt_perception, "interrupted": interrupted,
+                  "tap_base": ({"noise_px": tap_noise_px, "tapped": sum(j.base_xy is not None for j in jobs)}
+                               if tap_base else None),
                   "metrics": m, "timings_ms": stages, "samples": records}
         atomic_write_text(json_out, json.dumps(report, indent=1, ensure_ascii=False) + "\n")
         err_console.print(f"report: {json_out}", highlight=False)

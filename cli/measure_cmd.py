@@ -15,7 +15,7 @@ __all__ = ["measure", "parse_pick", "load_calib", "fail", "make_backend", "measu
            "session_factory_option"]
 
 
-def parse_pick(text: Optional[str]) -> Optional[tuple[float, float]]:
+def parse_pick(text: Optional[str], option: str = "--pick") -> Optional[tuple[float, float]]:
     """``"1520,980"`` -> (1520.0, 980.0); None -> None.
 
     Raises
@@ -31,10 +31,10 @@ def parse_pick(text: Optional[str]) -> Optional[tuple[float, float]]:
             raise ValueError
         x, y = float(parts[0]), float(parts[1])
     except ValueError:
-        raise typer.BadParameter(f"expected X,Y pixel coordinates, got {text!r}", param_hint="--pick")
+        raise typer.BadParameter(f"expected X,Y pixel coordinates, got {text!r}", param_hint=option)
     if not (math.isfinite(x) and math.isfinite(y)) or x < 0 or y < 0:
         raise typer.BadParameter(f"pixel coordinates must be finite and >= 0, got {text!r}",
-                                 param_hint="--pick")
+                                 param_hint=option)
     return x, y
 
 
@@ -132,6 +132,10 @@ def measure(
                                 "(each loads the models once)."),
     pick: Optional[str] = typer.Option(None, "--pick", metavar="X,Y", help="Pixel on the roped tree "
                                        "(when several trees carry a rope).", show_default=False),
+    base: Optional[str] = typer.Option(None, "--base", metavar="X,Y", help="Pixel where the roped stem "
+                                       "meets the ground (front, middle), one photo only: sets the "
+                                       "scale from the rope-to-base geometry (about 3x more accurate "
+                                       "than the depth network).", show_default=False),
     models_dir: Optional[Path] = typer.Option(None, "--models-dir", help="Folder of the ONNX models "
                                               "(default: the shipped ones).", show_default=False),
     measure_fn: Optional[str] = measure_fn_option(),
@@ -144,6 +148,7 @@ def measure(
     import sys
 
     pick_xy = parse_pick(pick)
+    base_xy = parse_pick(base, "--base")
     from monodbh.calib import MonodbhError
     from monodbh.toolkit.batch import Job, ResultWriter, expand_photos, unique_stems
 
@@ -151,8 +156,10 @@ def measure(
     paths = expand_photos(photos)
     if not paths:
         raise fail("no photos found in " + ", ".join(photos), 2)
+    if base_xy is not None and len(paths) != 1:
+        raise fail(f"--base is a pixel of one photo, but {len(paths)} photos were given", 2)
     stems = unique_stems(paths)
-    jobs = [Job(i, p, camera, pick_xy=pick_xy, out_dir=str(out_dir) if out_dir else None,
+    jobs = [Job(i, p, camera, pick_xy=pick_xy, base_xy=base_xy, out_dir=str(out_dir) if out_dir else None,
                 out_stem=s) for i, (p, s) in enumerate(zip(paths, stems))]
     backend = make_backend(measure_fn, session_factory, models_dir)
 

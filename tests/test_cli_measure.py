@@ -24,7 +24,7 @@ class Session:
         self.models_dir = models_dir
 
 
-def fake_measure(path, camera, *, pick_xy=None, want_cloud=False, want_debug=False, session=None):
+def fake_measure(path, camera, *, pick_xy=None, want_cloud=False, want_debug=False, session=None, base_xy=None):
     """Stand-in for toolkit.pipeline.measure_photo: black photo -> no rope; 'boom' -> crash."""
     assert isinstance(session, Session)
     if CSV_WATCH.get("path"):
@@ -41,6 +41,8 @@ def fake_measure(path, camera, *, pick_xy=None, want_cloud=False, want_debug=Fal
     res = MeasureResult(photo=path, dbh_cm=20.0 + img[..., 0].mean() / 25, dbh_sigma_cm=1.2, distance_m=3.25,
                         scale_source="rope", flags=["short_arc"], timings_ms={"rope": 1.5, "fit": 2.0},
                         estimates_cm={"circle": 30.1}, rope_xy=list(pick_xy or (w / 2, h / 2)), tree_id=1)
+    if base_xy is not None:
+        res.flags.append(f"base_{base_xy[0]:g}_{base_xy[1]:g}")
     if want_debug:
         t = np.linspace(np.pi, 2 * np.pi, 30)
         res.debug.update(image=img[::2, ::2], image_scale=0.5, rope_polyline=[[5, 15], [25, 16], [40, 15]],
@@ -131,6 +133,17 @@ def test_usage_errors_exit2(files):
     assert r.exit_code == 2 and "--pick" in r.output
     r = run([files["good"][0], "--calib", files["cam"], "--pick", "a,b"])
     assert r.exit_code == 2
+    r = run([files["good"][0], "--calib", files["cam"], "--base", "3"])
+    assert r.exit_code == 2 and "--base" in r.output
+    # the stem base is a pixel of one photo
+    r = run([*files["good"], "--calib", files["cam"], "--base", "10,20"])
+    assert r.exit_code == 2 and "one photo" in r.output
+
+
+def test_base_reaches_the_measure_function(files):
+    r = run([files["good"][0], "--calib", files["cam"], "--base", "10,20.5", "--json"])
+    assert r.exit_code == 0, r.output
+    assert "base_10_20.5" in json_lines(r.stdout)[0]["flags"]
 
 
 def test_bad_calib_is_one_line_error(files):

@@ -100,6 +100,51 @@ def test_scale_recovery_and_dbh_on_a_synthetic_scene():
     assert done >= 1
 
 
+def test_user_tapped_stem_base_sets_the_scale():
+    """A tapped stem base (``--base``) gives the scale by rope-to-base metrology, whatever the
+    depth map's scale; a tap above the rope is refused with a flag."""
+    pytest.importorskip("embreex")
+    from monodbh.calib import Camera
+    from monodbh.models.synthetic import generate_sample
+    from monodbh.toolkit.gt import perception_from_ground_truth, true_base_pixel
+    from monodbh.toolkit.measure_core import measure_from_perception
+
+    done = 0
+    for i in range(16):
+        s = generate_sample(23, i, (640, 480))
+        m = s["meta"]
+        if not m["rope"] or m["rope"]["pixels"] < 60:
+            continue
+        xy, status = true_base_pixel(m, s["depth"])
+        if status != "visible":
+            continue
+        tid = m["roped_tree"]
+        # the true base is at the bottom of the roped stem's pixels
+        inst = s["instance"]
+        x, y = int(round(xy[0])), int(round(xy[1]))
+        assert (inst[max(0, y - 4):y + 1, max(0, x - 2):x + 3] == tid).any()
+        cam = Camera(np.array(m["K"]), np.array(m["dist"]), (640, 480))
+        p = perception_from_ground_truth(s, cam, use_silhouette=False)
+        p.depth = p.depth * 1.7            # wrong scale, as a network's would be
+        p.depth_is_metric = False
+        p.ground_mask = np.zeros_like(p.ground_mask)   # no ground plane, no traced base
+        p.base_xy = xy
+        r = measure_from_perception(p)
+        if r.error:
+            continue
+        gt = m["trees"][tid - 1]
+        assert r.scale_source.startswith("stem_base_user"), r.scale_source
+        assert "stem_base_from_user" in r.flags
+        assert r.distance_m == pytest.approx(gt["distance_m"], rel=0.05)
+        # a "base" above the rope is no base: refused, the scale falls back to the depth map
+        p.base_xy = np.asarray(r.rope_xy) - [0.0, 40.0]
+        r2 = measure_from_perception(p)
+        assert "stem_base_user_rejected" in r2.flags and "stem_base_user" not in (r2.scale_source or "")
+        done += 1
+        break
+    assert done == 1
+
+
 def test_unproject_depth_matches_pinhole():
     from monodbh.toolkit.pipeline import unproject_depth
     K = np.array([[500.0, 0, 160], [0, 480.0, 120], [0, 0, 1]])

@@ -5,11 +5,11 @@ The measure function is named by a ``"module:attribute"`` spec (default
 ``dbh bench`` can time any function with the same signature::
 
     measure(path: str, camera, *, pick_xy=None, want_cloud=False, want_debug=False,
-            session=None[, gt=dict]) -> MeasureResult
+            session=None[, gt=dict][, base_xy=(x, y)]) -> MeasureResult
 
 ``session`` comes from the session factory spec (default :data:`DEFAULT_SESSION`, called as
 ``factory(models_dir=...)`` once per process); ``gt`` is passed only for ``dbh eval
---gt-perception``.
+--gt-perception``, ``base_xy`` only when the user gave the stem base (``--base``).
 
 Guarantees of :func:`run_job` / :func:`iter_results`: one :class:`MeasureResult` per photo, in
 input order, never an exception for a bad photo: a :class:`~monodbh.calib.errors.MonodbhError`
@@ -154,6 +154,9 @@ class Job:
         Camera model (``monodbh.calib.Camera``), picklable.
     pick_xy : (float, float) or None
         Pixel the user clicked on the roped tree.
+    base_xy : (float, float) or None
+        Pixel the user tapped where the roped stem meets the ground (passed to the measure
+        function as ``base_xy=`` only when given).
     out_dir : str or None
         Write ``<out_stem>_overlay.png`` (and ``<out_stem>_tree.ply`` when the result has a
         ``debug['tree_cloud']``) there.
@@ -169,6 +172,7 @@ class Job:
     photo: str
     camera: Any
     pick_xy: Optional[tuple[float, float]] = None
+    base_xy: Optional[tuple[float, float]] = None
     out_dir: Optional[str] = None
     out_stem: Optional[str] = None
     gt: Optional[tuple[str, int]] = None
@@ -251,6 +255,8 @@ def run_job(job: Job, measure: Callable[..., Any], session: Any = None, *,
                                                  if os.path.isdir(job.photo) else "no such file"))
         kw: dict[str, Any] = dict(pick_xy=job.pick_xy, want_cloud=bool(job.want_cloud or job.out_dir),
                                   want_debug=want_debug, session=session)
+        if job.base_xy is not None:
+            kw["base_xy"] = tuple(job.base_xy)
         if job.gt is not None:
             from monodbh.models.synthetic.io import read_sample
 

@@ -3,7 +3,7 @@
 Prints the table from which :data:`monodbh.toolkit.measure_core.SIGMA_MODEL_NETWORK` is set
 (run it on a folder rendered from seeds used neither for training nor for the benchmark)::
 
-    python -m monodbh.toolkit.error_model data/calset --json runs/error_model.json [--write]
+    python -m monodbh.toolkit.error_model data/calset --json runs/error_model.json [--tap-base 3] [--write]
 
 ``--write`` stores the measured sigmas in ``models/manifest.json`` (``error_model``, with the
 sha256 of the three shipped networks); ``dbh measure`` uses them for exactly those networks
@@ -47,9 +47,16 @@ def _angle_deg(a, b) -> float:
     return float(np.degrees(np.arccos(np.clip(c, -1, 1))))
 
 
-def collect(folder: str | Path, limit: int | None = None, progress: bool = True) -> list[dict]:
-    """Measure every roped sample of ``folder``; one row per sample (errors included)."""
+def collect(folder: str | Path, limit: int | None = None, progress: bool = True, *,
+            tap_noise_px: float | None = None) -> list[dict]:
+    """Measure every roped sample of ``folder``; one row per sample (errors included).
+
+    ``tap_noise_px``: also simulate a user tapping the stem base (``dbh measure --base``) where
+    it is visible, at the true pixel plus Gaussian noise of this 1-sigma (seeded per sample), so
+    the ``stem_base_user`` source is measured too.
+    """
     from monodbh.calib import Camera
+    from monodbh.toolkit.gt import true_base_pixel
     from monodbh.toolkit.pipeline import Session, measure_photo
 
     sess = Session()
@@ -60,7 +67,13 @@ def collect(folder: str | Path, limit: int | None = None, progress: bool = True)
         if not m.get("roped_tree") or not m.get("rope"):
             continue
         cam = Camera(m["K"], m.get("dist"), (int(m["width"]), int(m["height"])))
-        r = measure_photo(str(jp.with_suffix(".jpg")), cam, session=sess)
+        base_xy = None
+        if tap_noise_px is not None:
+            with np.load(jp.with_suffix(".npz")) as z:
+                xy, status = true_base_pixel(m, z["depth"])
+            if status == "visible":
+                base_xy = tuple(xy + np.random.default_rng(int(jp.stem)).normal(0, tap_noise_px, 2))
+        r = measure_photo(str(jp.with_suffix(".jpg")), cam, session=sess, base_xy=base_xy)
         tree = next(t for t in m["trees"] if t["id"] == m["roped_tree"])
         row = dict(photo=jp.stem, true_dbh_cm=100 * tree["dbh_m"], error=r.error)
         if r.dbh_cm is not None:
@@ -144,7 +157,8 @@ def _table(summary: dict) -> str:
 
 #: error-model keys of the scale sources and DBH estimators (see measure_core.SIGMA_MODEL_NETWORK)
 SOURCE_KEYS = {"network": "network", "ground_plane": "ground_plane_network",
-               "camera_height": "camera_height", "stem_base": "stem_base", "pose": "pose"}
+               "camera_height": "camera_height", "stem_base": "stem_base", "pose": "pose",
+               "stem_base_user": "stem_base_user"}
 ESTIMATOR_KEYS = {"tangent": "width", "cloud": "cloud"}
 
 
@@ -197,10 +211,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("folder")
     ap.add_argument("--limit", type=int)
     ap.add_argument("--json", help="write rows and summary here")
+    ap.add_argument("--tap-base", type=float, metavar="PX", default=None,
+                    help="simulate a user tapping the visible stem base with this 1-sigma noise (pixels)")
     ap.add_argument("--write", action="store_true",
                     help="store the measured sigmas in models/manifest.json for the shipped models")
     a = ap.parse_args(argv)
-    rows = collect(a.folder, a.limit)
+    rows = collect(a.folder, a.limit, tap_noise_px=a.tap_base)
     summary = summarize(rows)
     print(_table(summary))
     sig = sigma_table(rows)

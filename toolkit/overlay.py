@@ -21,6 +21,9 @@ no ``image``), OpenCV pixel-centre convention:
 ``edges_xy``
     (2, 2) float, the left and right trunk edge points ``[[xl, yl], [xr, yr]]`` at the slice
     (joined by the slice line), or (2, K, 2): the left and right edge polylines.
+``base_xy``
+    (2,) float, the stem base that set the scale (traced, or tapped with ``--base``): a square
+    marker joined to the rope centre by a dashed line (the 1.3 m the metrology used).
 ``slice_px``
     (M, 2) float, pixels of the breast-height slice (small dots), or (2, 2) the two ends of the
     slice line.
@@ -68,6 +71,7 @@ _WHITE = (255, 255, 255)
 _ERROR = (255, 70, 70)
 _MASK = (120, 200, 255)
 _UPLINE = (150, 150, 255)   # lines of the vertical vanishing point
+_BASE = (255, 120, 0)       # the stem base that set the scale
 
 
 def format_dbh(dbh_cm: Optional[float], sigma_cm: Optional[float], unicode: bool = True) -> str:
@@ -194,6 +198,19 @@ def _draw_geometry(img: np.ndarray, dbg: dict, result: MeasureResult, f: float,
         x, y = int(p[0]), int(p[1])
         cv2.line(img, (x - d, y - d), (x + d, y + d), _WHITE, lw, aa, sh)
         cv2.line(img, (x - d, y + d), (x + d, y - d), _WHITE, lw, aa, sh)
+    base = _arr(dbg, "base_xy")
+    if base is not None and base.shape == (2,) and np.isfinite(base).all():
+        b = _to_img(base, f)
+        d = 6 * lw * 16
+        bx, by = int(b[0]), int(b[1])
+        cv2.rectangle(img, (bx - d, by - d), (bx + d, by + d), _BASE, lw, aa, sh)
+        if p is not None:
+            # dashed line rope -> base
+            n = 24
+            for k in range(0, n, 2):
+                a0 = (int(x + (bx - x) * k / n), int(y + (by - y) * k / n))
+                a1 = (int(x + (bx - x) * (k + 1) / n), int(y + (by - y) * (k + 1) / n))
+                cv2.line(img, a0, a1, _BASE, max(1, lw // 2), aa, sh)
 
 
 def _inset(dbg: dict, size: int) -> Optional[np.ndarray]:

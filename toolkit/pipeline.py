@@ -91,6 +91,23 @@ def _work_image(rgb: np.ndarray, camera):
     return img, cw, (sx, sy), cw
 
 
+def _to_work_pixel(xy, scale, cam_distorted, cam_work) -> np.ndarray:
+    """A photo pixel ``(x, y)`` -> the working image's pixel ``(2,)`` (downscaled, undistorted)."""
+    sx, sy = scale
+    p = np.array([[(xy[0] + 0.5) * sx - 0.5, (xy[1] + 0.5) * sy - 0.5]], np.float64)
+    if cam_distorted is cam_work or not np.any(np.asarray(cam_distorted.dist) != 0):
+        return p[0]
+    return cam_distorted.undistort_points(p, K_new=cam_work.K)[0]
+
+
+def _polyline_span(polyline) -> float | None:
+    """End-to-end length (pixels) of a rope centre line ``(N, 2)``; None when missing."""
+    if polyline is None or len(polyline) < 2:
+        return None
+    p = np.asarray(polyline, np.float64)
+    return float(np.linalg.norm(p[-1] - p[0]))
+
+
 def _rope_band_mask(rope, shape: tuple[int, int], height_factor: float = 3.0) -> np.ndarray:
     """(H, W) bool: a band along the stem, as wide as the rope's extent, centred on the rope.
 
@@ -190,7 +207,7 @@ def unproject_depth(depth: np.ndarray, K: np.ndarray, step: int = 1) -> np.ndarr
 
 
 def measure_photo(path: str, camera, *, pick_xy=None, want_cloud: bool = False, want_debug: bool = False,
-                  session: Session | None = None, gt: dict | None = None) -> MeasureResult:
+                  session: Session | None = None, gt: dict | None = None, base_xy=None) -> MeasureResult:
     """Measure the DBH of the roped tree in one photo.
 
     Parameters
@@ -198,6 +215,9 @@ def measure_photo(path: str, camera, *, pick_xy=None, want_cloud: bool = False, 
     path : photo file.
     camera : :class:`monodbh.calib.Camera` from cam.yaml (adapted to the photo here).
     pick_xy : (x, y) photo pixel choosing among several roped trees.
+    base_xy : (x, y) photo pixel where the roped stem meets the ground (its front, middle),
+        tapped by the user (``dbh measure --base X,Y``): sets the scale by single-view
+        metrology between the rope and the base, the most accurate source without a pose.
     want_cloud : also build the scene and tree point clouds (``result.debug['scene_cloud']``,
         ``result.debug['tree_cloud']``).
     want_debug : keep arrays for the overlay in ``result.debug``.
@@ -220,7 +240,8 @@ def measure_photo(path: str, camera, *, pick_xy=None, want_cloud: bool = False, 
     try:
         if gt is not None:
             return _measure_gt(path, rgb, camera, gt, tm)
-        return _measure(path, rgb, camera, pick_xy, want_cloud, want_debug, session or Session(), tm)
+        return _measure(path, rgb, camera, pick_xy, want_cloud, want_debug, session or Session(), tm,
+                        base_xy=base_xy)
     except MonodbhError as e:
         return MeasureResult(photo=str(path), error=str(e), timings_ms=tm)
 
@@ -237,13 +258,13 @@ def _measure_gt(path, rgb, camera, gt, tm):
     return measure_from_perception(perc, str(path), timings=tm)
 
 
-def _measure(path, rgb, camera, pick_xy, want_cloud, want_debug, sess: Session, tm):
+def _measure(path, rgb, camera, pick_xy, want_cloud, want_debug, sess: Session, tm, base_xy=None):
     import cv2
 
     from .rope import detect_rope
     H, W = rgb.shape[:2]
     t = time.perf_counter()
-    img, cam, (sx, sy), _ = _work_image(rgb, camera)
+    img, cam, (sx, sy), cw = _work_image(rgb, camera)
     h, w = img.shape[:2]
     tm["undistort"] = 1000 * (time.perf_counter() - t)
 
@@ -286,7 +307,8 @@ def _measure(path, rgb, camera, pick_xy, want_cloud, want_debug, sess: Session, 
         # (e.g. the shaded half of a trunk)
         tree_mask = seg.instance == tid
         flags_extra = []
-    edge_mask = tree_mask | _rope_band_mask(rope, (h, w), height_factor=1.0)
+    band_mask = _rope_band_mask(rope, (h, w), height_factor=1.0)
+    edge_mask = tree_mask | band_mask
     ground = seg.semantic == 1
 
     t = time.perf_counter()
@@ -317,7 +339,10 @@ def _measure(path, rgb, camera, pick_xy, want_cloud, want_debug, sess: Session, 
                       tree_mask=tree_mask, ground_mask=ground, depth=depth, depth_is_metric=False,
                       silhouette_fn=silhouette_fn, source="network",
                       edge_search_px=max(3.0, 0.5 * cell), edge_mask=edge_mask,
-                      sigma_network=sess.sigma_network)
+                      sigma_network=sess.sigma_network,
+                      base_xy=None if base_xy is None else _to_work_pixel(base_xy, (sx, sy), cw, cam),
+                      rope_length_px=_polyline_span(rope.polyline),
+                      rope_band_mask=band_mask)
     res = measure_from_perception(perc, str(path), timings=tm)
     if sess.sigma_network is None:
         flags_extra.append("sigma_model_default")     # no error model measured for these networks
