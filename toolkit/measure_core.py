@@ -185,6 +185,7 @@ def measure_from_perception(perc: Perception, photo: str = "", *, timings: dict 
     emask = perc.tree_mask if perc.edge_mask is None else perc.edge_mask
     edges = _edges_two_pass(gray, emask, perc)
     flags: list[str] = []
+    width_vs_rope = 0.0     # |ln(edge width / rope length)| when the two disagree (a sigma term)
     if edges and perc.rope_length_px and perc.rope_band_mask is not None:
         # the rope spans the stem: a stem much wider (or narrower) than the rope band means the
         # edges were taken from a neighbouring trunk the coarse mask merged in (measured on the
@@ -201,6 +202,7 @@ def measure_from_perception(perc: Perception, photo: str = "", *, timings: dict 
                 flags.append("edges_from_rope_band")
             else:
                 flags.append("width_disagrees_rope")
+                width_vs_rope = float(abs(np.log(ratio)))
     if not edges:
         res.error = f"cannot measure the roped stem: {edges.reason}"
         return res
@@ -387,6 +389,9 @@ def measure_from_perception(perc: Perception, photo: str = "", *, timings: dict 
         if spread > 2.5 * np.hypot(sig["tangent"], sig["cloud"]):
             flags.append("estimators_disagree")
         rel_sig_est = max(rel_sig_est, spread / 2)
+    # edges that disagree with the rope band's length are shared by both estimators (the slice
+    # lies between them): the gap widens the uncertainty of the combination
+    rel_sig_est = float(np.hypot(rel_sig_est, width_vs_rope))
     rel_sig = np.hypot(rel_sig_est, sig_rel)
     res.dbh_cm = 100 * d
     res.dbh_sigma_cm = 100 * d * rel_sig
