@@ -62,6 +62,9 @@ def reconstruct(
                               "z forward), level (z up, y forward) or world (pose in --calib)."),
     pick: Optional[str] = typer.Option(None, "--pick", metavar="X,Y", help="Pixel on the roped tree "
                                        "(when several trees carry a rope).", show_default=False),
+    base: Optional[str] = typer.Option(None, "--base", metavar="X,Y", help="Pixel where the roped stem "
+                                       "meets the ground: sets the scale (see dbh measure --base).",
+                                       show_default=False),
     as_json: bool = typer.Option(False, "--json", help="Print the measurement as one JSON line."),
     models_dir: Optional[Path] = typer.Option(None, "--models-dir", help="Folder of the ONNX models.",
                                               show_default=False),
@@ -77,6 +80,7 @@ def reconstruct(
 
     _check_output(output)
     pick_xy = parse_pick(pick)
+    base_xy = parse_pick(base, "--base")
     if frame not in FRAMES:
         raise typer.BadParameter(f"expected one of {', '.join(FRAMES)}, got {frame!r}", param_hint="--frame")
     camera = load_calib(calib)
@@ -94,7 +98,10 @@ def reconstruct(
     try:
         fn = backend.function()
         session = backend.new_session()
-        out = fn(photo, camera, session=session, **({"pick_xy": pick_xy} if pick_xy else {}))
+        kw = {"pick_xy": pick_xy} if pick_xy else {}
+        if base_xy:
+            kw["base_xy"] = base_xy
+        out = fn(photo, camera, session=session, **kw)
     except MonodbhError as exc:
         raise fail(str(exc))
     except Exception as exc:  # no traceback for the user; the message names the exception

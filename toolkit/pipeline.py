@@ -401,10 +401,11 @@ def _tree_cloud(img, cam, tree_out, tree_mask, tid) -> PointCloud:
                       np.full(2 * len(xs), tid, np.int32))
 
 
-def reconstruct_photo(path: str, camera, session: Session | None = None, pick_xy=None):
+def reconstruct_photo(path: str, camera, session: Session | None = None, pick_xy=None, base_xy=None):
     """Measure and return ``(MeasureResult, PointCloud)``: the coarse scene cloud (metres,
-    camera frame, rescaled by the rope) plus the refined cloud of the roped tree."""
-    res = measure_photo(path, camera, pick_xy=pick_xy, want_cloud=True, session=session)
+    camera frame, rescaled by the rope) plus the refined cloud of the roped tree.
+    ``base_xy``: the stem base pixel the user tapped (see :func:`measure_photo`)."""
+    res = measure_photo(path, camera, pick_xy=pick_xy, want_cloud=True, session=session, base_xy=base_xy)
     if res.error:
         return res, None
     cloud = PointCloud.concat([res.debug.get("scene_cloud"), res.debug.get("tree_cloud")])
