@@ -115,6 +115,12 @@ def _table(results, console) -> None:
                       f"{r.distance_m:.2f} m" if r.distance_m is not None else "-",
                       r.scale_source or "-", Text(", ".join(r.flags), style="yellow"), tm)
     console.print(t)
+    weak = [r for r in results if not r.error and not any(s in (r.scale_source or "")
+                                                           for s in ("stem_base", "pose"))]
+    if weak:
+        console.print(Text(f"{len(weak)} of {len(results)} measured without the stem base: their scale "
+                           "comes from the depth network (about 15 % off). Where the stem base is in "
+                           "the photo, tap it: dbh measure PHOTO --calib CAM --base X,Y", style="dim"))
 
 
 def measure(

@@ -184,8 +184,14 @@ def pack_weights(run_dir: str | os.PathLike, out: str | os.PathLike) -> dict[str
     if ckpt is None:
         raise FileNotFoundError(f"{run.checkpoint_path}: no checkpoint")
     sd = {k: (v.half() if v.is_floating_point() else v) for k, v in ckpt["model"].items()}
-    obj = {"format": 1, "kind": ckpt["kind"], "size": ckpt["size"], "step": int(ckpt["step"]),
-           "model": sd}
+    # "step" counts every step behind these weights: the run's own plus those of the weights it
+    # was itself started from (so total_steps in the manifest stays right across packs)
+    cfg = ckpt.get("config") or {}
+    if not cfg and (Path(run_dir) / "config.json").exists():
+        cfg = json.loads((Path(run_dir) / "config.json").read_text())
+    before = int((cfg.get("init_weights") or {}).get("from_step") or 0)
+    obj = {"format": 1, "kind": ckpt["kind"], "size": ckpt["size"], "step": int(ckpt["step"]) + before,
+           "run_step": int(ckpt["step"]), "model": sd}
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     atomic_torch_save(obj, out)
