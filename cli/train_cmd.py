@@ -23,11 +23,21 @@ def train(
     init: Optional[Path] = typer.Option(None, "--init", exists=True, dir_okay=False,
                                         help="Warm start (new runs) from a shipped model, e.g. models/cden_int8.onnx, "
                                              "or a `dbh train-pack` weights file."),
+    augment: Optional[str] = typer.Option(None, "--augment", help="Segmenter augmentation preset: default | "
+                                          "strong (wider colour jitter)."),
 ) -> None:
     """Train one of the three networks on synthetic scenes (CPU, or CUDA when present)."""
     if kind not in KINDS:
         raise typer.BadParameter(f"kind must be one of {', '.join(KINDS)}, got {kind!r}")
     opts = {"size": size}
+    if augment is not None:
+        from monodbh.models.training.common import AUGMENT_PRESETS
+        if kind != "segmenter":
+            raise typer.BadParameter("only the segmenter takes an augmentation preset", param_hint="--augment")
+        if augment not in AUGMENT_PRESETS:
+            raise typer.BadParameter(f"expected one of {', '.join(AUGMENT_PRESETS)}, got {augment!r}",
+                                     param_hint="--augment")
+        opts["aug"] = AUGMENT_PRESETS[augment]
     if init is not None:
         opts["init_weights"] = str(init)
     if batch_size:

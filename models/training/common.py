@@ -48,7 +48,7 @@ import torch
 __all__ = [
     "seed_everything", "rng_state", "set_rng_state", "select_device", "RunDir", "train_loop",
     "batch_indices", "sample_rng", "DataSource", "FolderSource", "GeneratorSource", "ListSource",
-    "make_source", "source_from_config", "AugmentConfig", "photometric", "geometric", "augment",
+    "make_source", "source_from_config", "AugmentConfig", "AUGMENT_PRESETS", "photometric", "geometric", "augment",
     "resize_sample", "SPATIAL_KEYS", "TRAINING_MODULES", "register_calibration",
     "calibration_inputs", "register_eval", "evaluate_kind", "load_run_model", "atomic_torch_save", "pack_weights", "load_packed_weights",
     "atomic_write_text",
@@ -635,6 +635,15 @@ class AugmentConfig:
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
+
+
+#: named augmentation settings (``dbh train segmenter --augment NAME``); "strong" is the
+#: session-5 segmenter run's: wider colour jitter against the synthetic look
+AUGMENT_PRESETS = {
+    "default": AugmentConfig(),
+    "strong": AugmentConfig(brightness=0.35, contrast=0.35, saturation=0.45, hue_deg=15.0, blur=0.3,
+                            noise_std=3.0),
+}
 
 
 def photometric(rgb: np.ndarray, rng: np.random.Generator, cfg: AugmentConfig) -> np.ndarray:

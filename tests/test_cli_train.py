@@ -1,0 +1,23 @@
+"""`dbh train` option checks (no training runs here; smoke runs live in test_models_*)."""
+import pytest
+
+pytest.importorskip("torch")
+from typer.testing import CliRunner  # noqa: E402
+
+from monodbh.cli.main import app  # noqa: E402
+
+
+def test_augment_preset_is_checked(tmp_path):
+    r = CliRunner().invoke(app, ["train", "trees", "--out", str(tmp_path / "r"), "--augment", "strong"])
+    assert r.exit_code == 2 and "--augment" in r.output
+    r = CliRunner().invoke(app, ["train", "segmenter", "--out", str(tmp_path / "r"), "--augment", "wild"])
+    assert r.exit_code == 2 and "strong" in r.output
+    assert not (tmp_path / "r").exists()
+
+
+def test_augment_presets_are_valid_configs():
+    from monodbh.models.training.common import AUGMENT_PRESETS, AugmentConfig
+
+    assert set(AUGMENT_PRESETS) >= {"default", "strong"}
+    assert AUGMENT_PRESETS["default"] == AugmentConfig()
+    assert AUGMENT_PRESETS["strong"].hue_deg > AugmentConfig().hue_deg
