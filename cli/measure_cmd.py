@@ -99,12 +99,13 @@ def _table(results, console) -> None:
     from monodbh.toolkit.overlay import format_dbh
 
     t = Table(show_header=True, header_style="bold", expand=False)
-    t.add_column("photo", overflow="fold")
+    # on a narrow terminal the long columns wrap instead of collapsing to nothing
+    t.add_column("photo", overflow="fold", min_width=10)
     t.add_column("DBH", justify="right", no_wrap=True)
     t.add_column("distance", justify="right", no_wrap=True)
-    t.add_column("scale", no_wrap=True)
-    t.add_column("flags / error", overflow="fold")
-    t.add_column("time", justify="right", no_wrap=True)
+    t.add_column("scale", overflow="fold", min_width=10)
+    t.add_column("flags / error", overflow="fold", min_width=12)
+    t.add_column("time", justify="right", no_wrap=True, min_width=6)
     for r in results:
         total = (r.timings_ms or {}).get("total")
         tm = f"{total / 1000:.2f} s" if total is not None else ""
