@@ -202,16 +202,13 @@ def _simulated_tap(stem: Path, meta: dict, noise_px: float, index: int):
     """The true stem-base pixel plus seeded noise where it is visible in the photo, else None."""
     import numpy as np
 
-    from monodbh.toolkit.gt import true_base_pixel
+    from monodbh.toolkit.gt import simulated_tap
 
     if not meta.get("roped_tree"):
         return None
     with np.load(stem.with_suffix(".npz")) as z:
-        xy, status = true_base_pixel(meta, z["depth"])
-    if status != "visible":
-        return None
-    xy = xy + np.random.default_rng(index).normal(0.0, noise_px, 2)
-    return float(max(xy[0], 0.0)), float(max(xy[1], 0.0))
+        xy = simulated_tap(meta, z["depth"], noise_px, index)
+    return None if xy is None else (max(xy[0], 0.0), max(xy[1], 0.0))
 
 
 def evaluate(

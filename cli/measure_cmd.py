@@ -141,7 +141,7 @@ def measure(
                                        "(when several trees carry a rope).", show_default=False),
     base: Optional[str] = typer.Option(None, "--base", metavar="X,Y", help="Pixel where the roped stem "
                                        "meets the ground (front, middle), one photo only: sets the "
-                                       "scale from the rope-to-base geometry (about 3x more accurate "
+                                       "scale from the rope-to-base geometry (about 10x more accurate "
                                        "than the depth network).", show_default=False),
     models_dir: Optional[Path] = typer.Option(None, "--models-dir", help="Folder of the ONNX models "
                                               "(default: the shipped ones).", show_default=False),

@@ -67,25 +67,34 @@ def test_tangent_diameter_of_a_cylinder():
     assert tangent_diameter(rays[0], rays[1], axis, C) == pytest.approx(2 * rho, rel=1e-9)
 
 
-def test_scale_recovery_and_dbh_on_a_synthetic_scene():
-    """Ground-truth perception through the real geometry: the metric scale is recovered from
-    the rope and the ground plane alone (the depth map is given 1.7x too far)."""
+def _roped_scenes(seed: int, n: int):
+    """Synthetic 640x480 scenes with a well-visible rope: ``(sample, perception)`` with
+    ground-truth masks and a depth map 1.7x too far (wrong scale, as a network's would be)."""
     pytest.importorskip("embreex")
     from monodbh.calib import Camera
     from monodbh.models.synthetic import generate_sample
     from monodbh.toolkit.gt import perception_from_ground_truth
-    from monodbh.toolkit.measure_core import measure_from_perception
 
-    done = 0
-    for i in range(12):
-        s = generate_sample(21, i, (640, 480))
+    for i in range(n):
+        s = generate_sample(seed, i, (640, 480))
         m = s["meta"]
         if not m["rope"] or m["rope"]["pixels"] < 60:
             continue
         cam = Camera(np.array(m["K"]), np.array(m["dist"]), (640, 480))
         p = perception_from_ground_truth(s, cam, use_silhouette=False)
-        p.depth = p.depth * 1.7            # wrong scale, as a network's would be
+        p.depth = p.depth * 1.7
         p.depth_is_metric = False
+        yield s, p
+
+
+def test_scale_recovery_and_dbh_on_a_synthetic_scene():
+    """Ground-truth perception through the real geometry: the metric scale is recovered from
+    the rope and the ground plane alone (the depth map is given 1.7x too far)."""
+    from monodbh.toolkit.measure_core import measure_from_perception
+
+    done = 0
+    for s, p in _roped_scenes(21, 12):
+        m = s["meta"]
         r = measure_from_perception(p)
         if r.error:
             continue
@@ -103,18 +112,12 @@ def test_scale_recovery_and_dbh_on_a_synthetic_scene():
 def test_user_tapped_stem_base_sets_the_scale():
     """A tapped stem base (``--base``) gives the scale by rope-to-base metrology, whatever the
     depth map's scale; a tap above the rope is refused with a flag."""
-    pytest.importorskip("embreex")
-    from monodbh.calib import Camera
-    from monodbh.models.synthetic import generate_sample
-    from monodbh.toolkit.gt import perception_from_ground_truth, true_base_pixel
+    from monodbh.toolkit.gt import true_base_pixel
     from monodbh.toolkit.measure_core import measure_from_perception
 
     done = 0
-    for i in range(16):
-        s = generate_sample(23, i, (640, 480))
+    for s, p in _roped_scenes(23, 16):
         m = s["meta"]
-        if not m["rope"] or m["rope"]["pixels"] < 60:
-            continue
         xy, status = true_base_pixel(m, s["depth"])
         if status != "visible":
             continue
@@ -123,10 +126,6 @@ def test_user_tapped_stem_base_sets_the_scale():
         inst = s["instance"]
         x, y = int(round(xy[0])), int(round(xy[1]))
         assert (inst[max(0, y - 4):y + 1, max(0, x - 2):x + 3] == tid).any()
-        cam = Camera(np.array(m["K"]), np.array(m["dist"]), (640, 480))
-        p = perception_from_ground_truth(s, cam, use_silhouette=False)
-        p.depth = p.depth * 1.7            # wrong scale, as a network's would be
-        p.depth_is_metric = False
         p.ground_mask = np.zeros_like(p.ground_mask)   # no ground plane, no traced base
         p.base_xy = xy
         r = measure_from_perception(p)

@@ -56,7 +56,7 @@ def collect(folder: str | Path, limit: int | None = None, progress: bool = True,
     the ``stem_base_user`` source is measured too.
     """
     from monodbh.calib import Camera
-    from monodbh.toolkit.gt import true_base_pixel
+    from monodbh.toolkit.gt import simulated_tap
     from monodbh.toolkit.pipeline import Session, measure_photo
 
     sess = Session()
@@ -70,9 +70,7 @@ def collect(folder: str | Path, limit: int | None = None, progress: bool = True,
         base_xy = None
         if tap_noise_px is not None:
             with np.load(jp.with_suffix(".npz")) as z:
-                xy, status = true_base_pixel(m, z["depth"])
-            if status == "visible":
-                base_xy = tuple(xy + np.random.default_rng(int(jp.stem)).normal(0, tap_noise_px, 2))
+                base_xy = simulated_tap(m, z["depth"], tap_noise_px, int(jp.stem))
         r = measure_photo(str(jp.with_suffix(".jpg")), cam, session=sess, base_xy=base_xy)
         tree = next(t for t in m["trees"] if t["id"] == m["roped_tree"])
         row = dict(photo=jp.stem, true_dbh_cm=100 * tree["dbh_m"], error=r.error)

@@ -10,7 +10,7 @@ import numpy as np
 
 from .measure_core import Perception
 
-__all__ = ["perception_from_ground_truth", "true_base_pixel"]
+__all__ = ["perception_from_ground_truth", "true_base_pixel", "simulated_tap"]
 
 
 def true_base_pixel(meta: dict, depth: np.ndarray | None = None, *, tolerance_m: float = 0.3):
@@ -54,6 +54,22 @@ def true_base_pixel(meta: dict, depth: np.ndarray | None = None, *, tolerance_m:
     if depth is not None and abs(float(depth[int(round(v)), int(round(u))]) - pc[2]) > tolerance_m:
         return xy, "occluded"
     return xy, "visible"
+
+
+def simulated_tap(meta: dict, depth: np.ndarray, noise_px: float, seed: int):
+    """A user's tap on the stem base (``dbh measure --base``), simulated for evaluation: the
+    true base pixel plus Gaussian noise of ``noise_px`` per axis (seeded by ``seed``) when the
+    base is visible, else None.
+
+    Returns
+    -------
+    ``(x, y)`` floats or None.
+    """
+    xy, status = true_base_pixel(meta, depth)
+    if status != "visible":
+        return None
+    xy = xy + np.random.default_rng(seed).normal(0.0, noise_px, 2)
+    return float(xy[0]), float(xy[1])
 
 
 def perception_from_ground_truth(sample: dict, camera, *, use_silhouette: bool = True) -> Perception | None:
