@@ -10,6 +10,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .scene import BREAST_HEIGHT_M, Scene, Tree, ground_height
+from .vec import cross3, norm_rows
 
 __all__ = ["MeshSet", "build_meshes", "SEM_SKY", "SEM_GROUND", "SEM_VEG", "SEM_TREE", "SEM_OTHER"]
 
@@ -55,11 +56,11 @@ def _grid_faces(rows: int, cols: int, wrap: bool) -> np.ndarray:
 def _tube(p: np.ndarray, radius: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
     """Tube along polyline ``p`` (M, 3) with radii (M,) and ``n`` sides."""
     t = np.gradient(p, axis=0)
-    t /= np.linalg.norm(t, axis=1, keepdims=True) + 1e-12
+    t /= norm_rows(t, keepdims=True) + 1e-12
     ref = np.where(np.abs(t[:, 2:3]) < 0.9, [[0, 0, 1.0]], [[1.0, 0, 0]])
-    e1 = np.cross(ref, t)
-    e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
-    e2 = np.cross(t, e1)
+    e1 = cross3(ref, t)
+    e1 /= norm_rows(e1, keepdims=True)
+    e2 = cross3(t, e1)
     th = np.linspace(0, 2 * np.pi, n, endpoint=False)
     v = (p[:, None] + radius[:, None, None] * (np.cos(th)[None, :, None] * e1[:, None]
                                                + np.sin(th)[None, :, None] * e2[:, None]))
@@ -113,7 +114,7 @@ def _ring_mesh(tree: Tree, ring, rng) -> list:
         for side in (-1, 1):
             L = ring.tail_len_m * rng.uniform(0.6, 1.0)
             tt = np.linspace(0, 1, 10)
-            lateral = np.cross(tree.axis, radial) * side * 0.02
+            lateral = cross3(tree.axis, radial) * side * 0.02
             p = kp[None] + (-tree.axis[None] * L * tt[:, None] + radial[None] * 0.03 * np.sin(tt * 3)[:, None]
                             + lateral[None] * tt[:, None])
             if ring.width_m > 0:
@@ -129,7 +130,7 @@ def _blob(c, r):
     t = (1 + 5 ** 0.5) / 2
     v = np.array([[-1, t, 0], [1, t, 0], [-1, -t, 0], [1, -t, 0], [0, -1, t], [0, 1, t], [0, -1, -t], [0, 1, -t],
                   [t, 0, -1], [t, 0, 1], [-t, 0, -1], [-t, 0, 1]], np.float64)
-    v = v / np.linalg.norm(v, axis=1, keepdims=True) * r + c
+    v = v / norm_rows(v, keepdims=True) * r + c
     f = np.array([[0, 11, 5], [0, 5, 1], [0, 1, 7], [0, 7, 10], [0, 10, 11], [1, 5, 9], [5, 11, 4], [11, 10, 2],
                   [10, 7, 6], [7, 1, 8], [3, 9, 4], [3, 4, 2], [3, 2, 6], [3, 6, 8], [3, 8, 9], [4, 9, 5],
                   [2, 4, 11], [6, 2, 10], [8, 6, 7], [9, 8, 1]])
@@ -144,14 +145,14 @@ def _leaves(rng, centres: np.ndarray, radii: np.ndarray, per: int, size: float, 
     n = C * per
     idx = np.repeat(np.arange(C), per)
     d = rng.normal(size=(n, 3))
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    d /= norm_rows(d, keepdims=True)
     rad = radii[idx] * rng.random(n) ** 0.5          # denser towards the outside
     p = centres[idx] + d * rad[:, None]
     a = rng.normal(size=(n, 3))
     a[:, 2] *= (1 - flat_up)
-    a /= np.linalg.norm(a, axis=1, keepdims=True)
-    b = np.cross(a, rng.normal(size=(n, 3)))
-    b /= np.linalg.norm(b, axis=1, keepdims=True) + 1e-9
+    a /= norm_rows(a, keepdims=True)
+    b = cross3(a, rng.normal(size=(n, 3)))
+    b /= norm_rows(b, keepdims=True) + 1e-9
     sz = size * rng.uniform(0.6, 1.4, n)[:, None]
     v = np.stack([p - a * sz * 0.5, p + a * sz * 0.5, p + b * sz * 0.6], 1).reshape(-1, 3)
     f = np.arange(3 * n).reshape(n, 3)
@@ -181,7 +182,7 @@ def _crown(tree: Tree, rng):
     else:
         nc = (36, 18, 8)[tree.lod]
         u = rng.normal(size=(nc, 3))
-        u /= np.linalg.norm(u, axis=1, keepdims=True)
+        u /= norm_rows(u, keepdims=True)
         u *= rng.random(nc)[:, None] ** 0.4
         centre = tree.base + (cb + 0.55 * L) * tree.axis
         c = centre + np.stack([u[:, 0] * tree.crown_radius_m, u[:, 1] * tree.crown_radius_m, u[:, 2] * 0.5 * L], 1)
@@ -211,7 +212,7 @@ def _in_view(tree: Tree, cam, margin: float = 0.25) -> bool:
     offs = np.array([[0, 0, 0], [r, 0, 0], [-r, 0, 0], [0, r, 0], [0, -r, 0]], float)
     P = (axis[:, None] + offs[None]).reshape(-1, 3)
     pc = (P - cam.t_wc) @ cam.R_wc
-    if np.min(np.linalg.norm(pc, axis=1)) < 2.0 + r:
+    if np.min(norm_rows(pc)) < 2.0 + r:
         return True
     front = pc[:, 2] > 0.05
     if not front.any():

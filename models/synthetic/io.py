@@ -40,6 +40,24 @@ def _npz_bytes(arrays: dict) -> bytes:
     return buf.getvalue()
 
 
+def _json_bytes(meta: dict) -> bytes:
+    """The record as JSON: one top-level key per line, one tree (list item) per line.
+
+    Written with the C encoder (``indent`` would select json's pure-Python one: 35 ms of a
+    512x512 sample's 1.1 s, for a 200-tree record); keys sorted, so the bytes are fixed.
+    """
+    enc = json.JSONEncoder(sort_keys=True, separators=(", ", ": "))
+    lines = []
+    for k in sorted(meta):
+        v = meta[k]
+        if isinstance(v, list) and v and all(isinstance(x, dict) for x in v):
+            body = "[\n  " + ",\n  ".join(enc.encode(x) for x in v) + "\n ]"
+        else:
+            body = enc.encode(v)
+        lines.append(f" {enc.encode(k)}: {body}")
+    return ("{\n" + ",\n".join(lines) + "\n}\n").encode()
+
+
 def sample_done(folder: str | os.PathLike, index: int) -> bool:
     stem = Path(folder) / f"{index:06d}"
     return all((stem.with_suffix(s)).exists() for s in (".jpg", ".npz", ".json"))
@@ -52,7 +70,7 @@ def write_sample(folder: str | os.PathLike, index: int, sample: dict) -> None:
     stem = folder / f"{index:06d}"
     _atomic_write(stem.with_suffix(".npz"), _npz_bytes(sample))
     _atomic_write(stem.with_suffix(".jpg"), sample["jpeg"])
-    _atomic_write(stem.with_suffix(".json"), json.dumps(sample["meta"], indent=1, sort_keys=True).encode())
+    _atomic_write(stem.with_suffix(".json"), _json_bytes(sample["meta"]))
 
 
 def list_samples(folder: str | os.PathLike) -> list[int]:

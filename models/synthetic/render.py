@@ -12,12 +12,13 @@ import time
 
 import cv2
 import numpy as np
-from embreex import rtcore_scene
-from embreex.mesh_construction import TriangleMesh
+from embreex import rtcore, rtcore_scene
 
+from .embree_mesh import add_triangles
 from .geometry import SEM_SKY, SEM_TREE, MeshSet, build_meshes
 from .noise import fbm_texture, ridged, sample_texture
 from .scene import BREAST_HEIGHT_M, SPECIES, Scene, ground_height
+from .vec import cross3, norm_rows
 
 __all__ = ["render_scene", "pixel_rays", "Tracer"]
 
@@ -37,8 +38,8 @@ class Tracer:
     def __init__(self, verts: np.ndarray, faces: np.ndarray, origin: np.ndarray):
         self.origin = np.asarray(origin, np.float64)
         self.scene = rtcore_scene.EmbreeScene()
-        TriangleMesh(scene=self.scene, vertices=(verts - self.origin).astype(_F32),
-                     indices=faces.astype(np.int32))
+        self._keep: list = []     # buffers embree shares (see embree_mesh)
+        add_triangles(self.scene, (verts - self.origin).astype(_F32), faces, self._keep)
 
     def first(self, o: np.ndarray, d: np.ndarray) -> dict:
         """Closest hits: dict with ``prim`` (N,) (-1 = miss), ``t`` (N,), ``Ng`` (N, 3)."""
@@ -75,7 +76,7 @@ def pixel_rays(cam, px: np.ndarray) -> np.ndarray:
     else:
         und = np.stack([(px[:, 0] - cam.K[0, 2]) / cam.K[0, 0], (px[:, 1] - cam.K[1, 2]) / cam.K[1, 1]], 1)
     d = np.concatenate([und, np.ones((len(und), 1))], 1)
-    return d / np.linalg.norm(d, axis=1, keepdims=True)
+    return d / norm_rows(d, keepdims=True)
 
 
 def grid_rays(cam, step: int = 4) -> np.ndarray:
@@ -99,7 +100,7 @@ def grid_rays(cam, step: int = 4) -> np.ndarray:
     und = np.stack([cv2.remap(r[..., c].astype(np.float32), mx, my, cv2.INTER_LINEAR) for c in (0, 1)], -1)
     und = und.reshape(-1, 2).astype(np.float64)
     d = np.concatenate([und, np.ones((len(und), 1))], 1)
-    return d / np.linalg.norm(d, axis=1, keepdims=True)
+    return d / norm_rows(d, keepdims=True)
 
 
 def _textures(rng):
@@ -166,7 +167,7 @@ class _Shader:
         obj = h["obj"][idx]
         kind = self.obj_kind[obj]
         nrm = h["Ng"][idx].copy()
-        nrm /= np.linalg.norm(nrm, axis=1, keepdims=True) + 1e-12
+        nrm /= norm_rows(nrm, keepdims=True) + 1e-12
         alb = np.zeros((len(idx), 3))
         trans = np.zeros(len(idx))                     # leaf translucency
 
@@ -179,7 +180,7 @@ class _Shader:
             gx = (ground_height(sc.ground, q[:, 0] + eps, q[:, 1]) - gz) / eps
             gy = (ground_height(sc.ground, q[:, 0], q[:, 1] + eps) - gz) / eps
             nn = np.stack([-gx, -gy, np.ones_like(gx)], 1)
-            nrm[m] = nn / np.linalg.norm(nn, axis=1, keepdims=True)
+            nrm[m] = nn / norm_rows(nn, keepdims=True)
             c1 = sample_texture(self.tex["coarse"], q[:, 0] / 23.0, q[:, 1] / 23.0)
             c2 = sample_texture(self.tex["mid"], q[:, 0] / 3.1, q[:, 1] / 3.1)
             c3 = sample_texture(self.tex["fine"], q[:, 0] / 0.7, q[:, 1] / 0.7)
@@ -203,11 +204,11 @@ class _Shader:
                 s = rel @ t.axis
                 rad = rel - s[:, None] * t.axis
                 th = np.arctan2(rad @ t.e2, rad @ t.e1)
-                nr = rad / (np.linalg.norm(rad, axis=1, keepdims=True) + 1e-12)
+                nr = rad / (norm_rows(rad, keepdims=True) + 1e-12)
                 alb[jj], bump = self._bark(t, th, s)
-                tang = np.cross(t.axis, nr)
+                tang = cross3(t.axis, nr)
                 nrm[jj] = nr + bump[:, 0:1] * tang + bump[:, 1:2] * t.axis
-                nrm[jj] /= np.linalg.norm(nrm[jj], axis=1, keepdims=True)
+                nrm[jj] /= norm_rows(nrm[jj], keepdims=True)
         # branches, logs
         m = np.isin(kind, ("branch", "log"))
         if m.any():
@@ -459,46 +460,39 @@ def render_scene(scene: Scene, rng: np.random.Generator, *, aa: bool = True, sha
     tree_pix = inst > 0
     z1[tree_pix] = depth[tree_pix]
     t_vis = np.where(tree_pix, depth / np.maximum(dc[:, 2], 1e-9), 0.0)
-    # one BVH with a geometry per tree; a reversed ray that meets another tree first steps past it
-    tree_ids = sorted({ob["tree"] for ob in ms.objects if ob["tree"]})
-    vis_ids = set(np.unique(inst[tree_pix]).tolist())
-    tree_ids = [t for t in tree_ids if t in vis_ids]
-    if tree_ids:
-        tscene = rtcore_scene.EmbreeScene()
-        by_tree = {}
+    # one small BVH per visible tree: a reversed ray from beyond the tree meets only that tree,
+    # and its first hit is the tree's farthest surface along the pixel's ray
+    vis_ids = sorted(set(np.unique(inst[tree_pix]).tolist()) - {0})
+    if vis_ids:
+        by_tree: dict = {}
         for k, ob in enumerate(ms.objects):
-            if ob["tree"] in vis_ids:
+            if ob["tree"]:
                 by_tree.setdefault(ob["tree"], []).append(k)
-        ext = {}
-        for gid, tid in enumerate(tree_ids):
-            objs = by_tree[tid]
+        device = rtcore.EmbreeDevice()
+        pix = np.nonzero(tree_pix)[0]
+        order = np.argsort(inst[pix], kind="stable")
+        pix = pix[order]
+        bounds = np.searchsorted(inst[pix], np.r_[vis_ids, vis_ids[-1] + 1])
+        for j, tid in enumerate(vis_ids):
+            pj = pix[bounds[j]:bounds[j + 1]]
+            objs = by_tree.get(tid, [])
+            if not len(pj) or not objs:
+                continue
             tv = np.concatenate([ms.verts[k] for k in objs])
             local = np.cumsum([0] + [len(ms.verts[k]) for k in objs[:-1]])
             tf = np.concatenate([ms.faces[k] - ms.offsets[k] + lo for k, lo in zip(objs, local)])
-            TriangleMesh(scene=tscene, vertices=(tv - cam.t_wc).astype(_F32), indices=tf.astype(np.int32))
-            ext[tid] = float(np.linalg.norm(tv - tv.mean(0), axis=1).max() * 2 + 1.0)
-        gid_of = {tid: g for g, tid in enumerate(tree_ids)}
-        pix = np.nonzero(tree_pix)[0]
-        want = np.array([gid_of[int(i)] for i in inst[pix]]) if len(pix) else np.zeros(0, int)
-        ext_p = np.array([ext[int(i)] for i in inst[pix]])
-        dd = d[pix]
-        tv_ = t_vis[pix]
-        far = tv_ + ext_p
-        tb = tv_.copy()
-        todo = np.arange(len(pix))
-        cur = far.copy()
-        for _ in range(8):
-            if len(todo) == 0:
-                break
-            r = tscene.run((dd[todo] * cur[todo, None]).astype(_F32), (-dd[todo]).astype(_F32), output=1)
-            g = r["geomID"]
-            tt = cur[todo] - r["tfar"]
-            own = g == want[todo]
-            tb[todo[own]] = np.maximum(tt[own], tv_[todo[own]])
-            other = (g >= 0) & ~own & (tt > tv_[todo] + 1e-4)
-            cur[todo[other]] = tt[other] - 1e-4
-            todo = todo[other]
-        z2[pix] = tb * dc[pix, 2]
+            tscene = rtcore_scene.EmbreeScene(device)
+            tkeep: list = []
+            add_triangles(tscene, (tv - cam.t_wc).astype(_F32), tf, tkeep)
+            ext = float(norm_rows(tv - tv.mean(0)).max() * 2 + 1.0)
+            dd = d[pj]
+            tv_ = t_vis[pj]
+            far = tv_ + ext
+            r = tscene.run((dd * far[:, None]).astype(_F32), (-dd).astype(_F32), output=1)
+            own = r["geomID"] >= 0
+            tb = tv_.copy()
+            tb[own] = np.maximum(far[own] - r["tfar"][own], tv_[own])
+            z2[pj] = tb * dc[pj, 2]
 
     lap("z2")
     lin = col.reshape(H, W, 3)

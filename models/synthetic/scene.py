@@ -14,6 +14,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .vec import cross3
+
 __all__ = [
     "SPECIES", "Tree", "Ring", "Camera", "Light", "Scene", "sample_scene",
     "BREAST_HEIGHT_M", "ground_height",
@@ -214,8 +216,8 @@ def _unit(v):
 def _frame(axis):
     """Two unit vectors perpendicular to ``axis`` (e1 roughly horizontal)."""
     ref = np.array([0.0, 0.0, 1.0]) if abs(axis[2]) < 0.9 else np.array([1.0, 0.0, 0.0])
-    e1 = _unit(np.cross(ref, axis))
-    e2 = np.cross(axis, e1)
+    e1 = _unit(cross3(ref, axis))
+    e2 = cross3(axis, e1)
     return e1, e2
 
 
@@ -509,7 +511,7 @@ def _rotation(yaw: float, pitch: float, roll: float) -> np.ndarray:
     """
     f = np.array([np.cos(pitch) * np.cos(yaw), np.cos(pitch) * np.sin(yaw), np.sin(pitch)])
     r0 = np.array([np.sin(yaw), -np.cos(yaw), 0.0])
-    d0 = np.cross(f, r0)                    # down = forward x right
+    d0 = cross3(f, r0)                    # down = forward x right
     r = np.cos(roll) * r0 + np.sin(roll) * d0
     d = -np.sin(roll) * r0 + np.cos(roll) * d0
     return np.stack([r, d, f], axis=1)
