@@ -203,6 +203,16 @@ def measure_from_perception(perc: Perception, photo: str = "", *, timings: dict 
             else:
                 flags.append("width_disagrees_rope")
                 width_vs_rope = float(abs(np.log(ratio)))
+    if not edges and perc.rope_band_mask is not None:
+        # the coarse mask's borders are nowhere near the stem's (e.g. a close stem merged with
+        # its neighbour, the mask border tens of pixels off): the rope spans the stem, so its
+        # band's ends guide the search instead
+        e3 = _edges_two_pass(gray, perc.rope_band_mask, perc)
+        if e3 and (not perc.rope_length_px or 0.8 < e3.width_px / perc.rope_length_px < 1.25):
+            edges = e3
+            flags.append("edges_from_rope_band")
+        elif e3.reason and "photo" in e3.reason:
+            edges = e3
     if not edges:
         res.error = f"cannot measure the roped stem: {edges.reason}"
         return res
