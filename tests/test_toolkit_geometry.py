@@ -173,3 +173,43 @@ def test_error_model_summary_statistics():
     errs = np.abs(20.0 * np.exp([0.05, -0.1, 0.2, 0.0]) - 20.0)
     assert s["dbh_mae_cm"] == pytest.approx(errs.mean())
     assert s["coverage_1sigma"] == pytest.approx(np.mean(errs <= 2.0))
+
+
+def test_circle_only_checks_the_tangent_estimate_when_the_scale_is_precise():
+    """Network perception: with a tapped stem base the DBH is the tangent estimate (the tree
+    network's circle stays in ``estimates_cm`` as a check); with a depth-network scale the two
+    are combined."""
+    from monodbh.calib import Camera
+    from monodbh.models.synthetic import generate_sample
+    from monodbh.toolkit.gt import perception_from_ground_truth, true_base_pixel
+    from monodbh.toolkit.measure_core import measure_from_perception
+
+    pytest.importorskip("embreex")
+    done = 0
+    for i in range(16):
+        s = generate_sample(23, i, (640, 480))
+        m = s["meta"]
+        if not m["rope"] or m["rope"]["pixels"] < 60:
+            continue
+        xy, status = true_base_pixel(m, s["depth"])
+        if status != "visible":
+            continue
+        cam = Camera(np.array(m["K"]), np.array(m["dist"]), (640, 480))
+        p = perception_from_ground_truth(s, cam, use_silhouette=True)
+        p.source = "network"
+        p.depth_is_metric = False
+        p.z2 = np.where(p.z2 > 0, p.z1 + 1.6 * (p.z2 - p.z1), 0)      # a circle that is too wide
+        r_net = measure_from_perception(p)
+        p.base_xy = xy
+        r_tap = measure_from_perception(p)
+        if r_net.error or r_tap.error or "cloud" not in r_tap.estimates_cm or "cloud" not in r_net.estimates_cm:
+            continue
+        assert r_tap.scale_source.startswith("stem_base_user")
+        assert "circle_as_check" in r_tap.flags
+        assert r_tap.dbh_cm == pytest.approx(r_tap.estimates_cm["tangent"], rel=1e-9)
+        assert "circle_as_check" not in r_net.flags
+        t, c = r_net.estimates_cm["tangent"], r_net.estimates_cm["cloud"]
+        assert min(t, c) < r_net.dbh_cm < max(t, c)
+        done += 1
+        break
+    assert done == 1
