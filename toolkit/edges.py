@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["TrunkEdges", "trunk_edges", "trace_stem_base"]
+__all__ = ["TrunkEdges", "trunk_edges", "trace_stem_base", "track_stem_base"]
 
 
 @dataclass
@@ -226,3 +226,199 @@ def trace_stem_base(tree_mask: np.ndarray, ground_mask: np.ndarray, start_xy, al
         t += 1.0
         if t > 4 * max(H, W):
             return None, "edge"
+
+
+def _peak_near(gray: np.ndarray, p: np.ndarray, u: np.ndarray, half: float) -> tuple[float, float, float]:
+    """Strongest intensity edge on the segment ``p + s u, |s| <= half``: ``(s, gradient, snr)``.
+
+    The profile is sampled every 0.25 px, smoothed (sigma 0.75 px) and differentiated; the
+    peak is refined to sub-sample precision. Returns ``(nan, 0)`` off the photo.
+    """
+    H, W = gray.shape
+    S = np.arange(-half - 2.5, half + 2.5 + 1e-9, 0.25)
+    xs, ys = p[0] + S * u[0], p[1] + S * u[1]
+    if xs.min() < 1 or xs.max() > W - 2 or ys.min() < 1 or ys.max() > H - 2:
+        return np.nan, 0.0, 0.0
+    prof = _sample(gray, xs[None], ys[None])[0]
+    ker = np.exp(-0.5 * (np.arange(-9, 10) / 3.0) ** 2)
+    sm = np.convolve(prof, ker / ker.sum(), mode="same")
+    g = np.abs(np.gradient(sm)) * 4.0            # intensity per pixel
+    inner = (S >= -half) & (S <= half)
+    idx = np.nonzero(inner)[0]
+    j = int(idx[np.argmax(g[idx])])
+    pos = _subpixel_peak(g, j)
+    # contrast of the peak over the profile's other gradients (texture), 1 px around it excluded
+    rest = np.r_[g[:max(0, j - 4)], g[j + 5:]]
+    snr = float(g[j] / (np.median(rest) + 0.5)) if len(rest) else 0.0
+    return float(np.interp(pos, np.arange(len(S)), S)), float(g[j]), snr
+
+
+def _interior_colour(rgb: np.ndarray, p: np.ndarray, u: np.ndarray, half: float) -> np.ndarray:
+    """(4,) mean chromaticity (r, g, b) and intensity of the segment ``p + s u, |s| <= half``."""
+    S = np.linspace(-half, half, 9)
+    xs, ys = p[0] + S * u[0], p[1] + S * u[1]
+    v = _sample(rgb.astype(np.float32), xs[None], ys[None])[0]        # (9, 3)
+    tot = v.sum(1, keepdims=True) + 30.0
+    return np.r_[(v / tot).mean(0), v.mean() / 255.0]
+
+
+def track_stem_base(gray: np.ndarray, edges: TrunkEdges, ground_mask: np.ndarray, tree_mask: np.ndarray,
+                    *, rgb: np.ndarray | None = None, rope_half_px: float = 1.5, min_rel_gradient: float = 0.35,
+                    max_miss_frac: float = 0.4, max_colour_z: float = 4.0, min_snr: float = 3.0) -> tuple[np.ndarray | None, str, dict]:
+    """Follow the stem's two silhouette edges down from the rope to where they end.
+
+    The edges found at the rope are tracked step by step down the stem (each side searched
+    near its straight-line prediction from the points tracked so far); where both stop, the stem
+    meets the ground - or something hides it. What lies just below tells which: ground pixels
+    (``ground_mask``) give the base; the stem's own mask, vegetation or another object mean the
+    base is hidden or the tracking stopped early, and no base is reported.
+
+    Parameters
+    ----------
+    gray : (H, W) float32 photo intensity (0-255).
+    edges : :class:`TrunkEdges` at the rope (``left_xy``, ``right_xy``, ``along`` pointing down).
+    ground_mask, tree_mask : (H, W) bool segmenter ground pixels / the roped stem's mask.
+    rope_half_px : half thickness of the rope band (the tracking starts below its bulge).
+    min_rel_gradient, min_snr : an edge point counts when its gradient is at least this
+        fraction of that side's gradient near the rope, or at least ``min_snr`` times the
+        typical gradient along the search line (the background behind the stem changes).
+    max_miss_frac : tracking stops after a gap of this fraction of the stem width (both sides
+        lost) and the base is the last step where both were found.
+    rgb : (H, W, 3) uint8 photo, optional: the stem's interior colour (between the tracked edges)
+        must stay like its colour below the rope; where it changes (grass or litter in front of
+        the stem: edges of grass blades would otherwise be followed down), the tracking stops.
+    max_colour_z : ... by more than this many standard deviations of the colour near the rope.
+
+    Returns
+    -------
+    (base_xy, status, info): ``base_xy`` (2,) image pixel at the bottom of the stem's mid-line
+    or None; ``status`` "ground", "occluded", "edge" (ran out of the photo) or "lost";
+    ``info`` holds the tracked points (``left``, ``right``: (N, 2)) and the stem width there.
+    """
+    H, W = gray.shape
+    a = np.asarray(edges.along, np.float64)
+    a = a / np.linalg.norm(a)
+    u = np.array([a[1], -a[0]]) if (edges.right_xy - edges.left_xy) @ np.array([a[1], -a[0]]) > 0 \
+        else np.array([-a[1], a[0]])
+    c = 0.5 * (edges.left_xy + edges.right_xy)
+    w0 = float(edges.width_px)
+    hist = {"L": [(0.0, -w0 / 2)], "R": [(0.0, w0 / 2)]}
+    g_first: dict = {"L": [], "R": []}      # gradients of the first points: the side's reference
+    dt = max(1.5, 0.08 * w0)
+    t = 3.0 * rope_half_px + 3.0
+    t_both = None
+    gap = 0.0
+    status = "lost"
+    cols: list = []          # interior colour of the first tracked steps (the reference)
+    col_bad = 0
+    info: dict = {}
+    def predict(side, t_):
+        h = np.array(hist[side][-10:])
+        if len(h) >= 3:
+            coef = np.linalg.lstsq(np.c_[np.ones(len(h)), h[:, 0]], h[:, 1], rcond=None)[0]
+            return float(coef[0] + coef[1] * t_)
+        return float(h[-1, 1])
+
+    half_run = 0.0          # length tracked on one side only (the other hidden or low-contrast)
+    while True:
+        pred = {side: predict(side, t) for side in ("L", "R")}
+        pts = {}
+        for side in ("L", "R"):
+            p = c + t * a + pred[side] * u
+            if not (2 <= p[0] < W - 3 and 2 <= p[1] < H - 3):
+                status = "edge"
+                break
+            s_off, g, snr = _peak_near(gray, p, u, max(2.0, 0.08 * w0))
+            if not np.isfinite(s_off):
+                status = "edge"
+                break
+            ref = np.median(g_first[side]) if g_first[side] else g
+            if g >= 2.0 and (g >= min_rel_gradient * ref or snr >= min_snr):
+                pts[side] = pred[side] + s_off
+                if len(g_first[side]) < 5:
+                    g_first[side].append(g)
+        if status == "edge":
+            break
+        full = {**pred, **pts}
+        ok = bool(pts) and 0.7 * w0 < full["R"] - full["L"] < 1.9 * w0
+        if ok and len(pts) == 1:
+            half_run += dt
+            ok = half_run <= 1.5 * w0
+        elif ok:
+            half_run = 0.0
+        if ok and rgb is not None:
+            mid = c + t * a + 0.5 * (full["L"] + full["R"]) * u
+            col = _interior_colour(rgb, mid, u, 0.25 * (full["R"] - full["L"]))
+            if len(cols) < 8:
+                cols.append(col)
+            else:
+                ref = np.array(cols)
+                z = np.abs(col - ref.mean(0)) / np.maximum(ref.std(0), [0.01, 0.01, 0.01, 0.03])
+                if z.max() > max_colour_z:
+                    col_bad += 1
+                    ok = False
+                    if col_bad >= 2:
+                        info["stop"] = "colour"
+                        break
+                else:
+                    col_bad = 0
+        if ok:
+            for side in pts:
+                hist[side].append((t, pts[side]))
+            t_both = t
+            gap = 0.0
+        else:
+            gap += dt
+            if gap > max_miss_frac * w0 + 2 * dt:
+                info["stop"] = "gap:" + "".join(sorted(pts))
+                break
+        t += dt
+        if t > 4 * max(H, W):
+            break
+    info.update(left=np.array([c + tt * a + s * u for tt, s in hist["L"]]),
+                right=np.array([c + tt * a + s * u for tt, s in hist["R"]]))
+    if t_both is None:
+        return None, status if status == "edge" else "lost", info
+    # the end to a pixel: finer steps past the last step where the edges were found
+    for t_f in np.arange(t_both + 0.5, t_both + 2 * dt, 0.5):
+        n_ok = 0
+        for side in ("L", "R"):
+            p = c + t_f * a + predict(side, t_f) * u
+            s_off, g, snr = _peak_near(gray, p, u, max(2.0, 0.08 * w0))
+            ref = np.median(g_first[side]) if g_first[side] else g
+            n_ok += bool(np.isfinite(s_off) and g >= 2.0 and (g >= min_rel_gradient * ref or snr >= min_snr))
+        if n_ok < 2:
+            break
+        t_both = float(t_f)
+    sl, sr = predict("L", t_both), predict("R", t_both)
+    width = sr - sl
+    base = c + t_both * a + 0.5 * (sl + sr) * u
+    info["width_px"] = float(width)
+    info["end_xy"] = base
+    if status == "edge" or t_both < 1.5 * w0:
+        return None, status if status == "edge" else "lost", info
+    # the stem's last stretch must still be on the (coarse) tree mask: tracked edges that ran on
+    # into the ground (shadows, litter as dark as the bark) end well below where the mask does
+    tt = np.linspace(max(0.0, t_both - 0.6 * width), t_both, 6)
+    ss = np.linspace(0.5 * (sl + sr) - 0.3 * width, 0.5 * (sl + sr) + 0.3 * width, 5)
+    P = c[None, None] + tt[:, None, None] * a + ss[None, :, None] * u
+    xi = np.clip(np.round(P[..., 0]).astype(int).ravel(), 0, W - 1)
+    yi = np.clip(np.round(P[..., 1]).astype(int).ravel(), 0, H - 1)
+    info["end_on_mask"] = float(tree_mask[yi, xi].mean())
+    if info["end_on_mask"] < 0.25:
+        return None, "off_mask", info
+    # what lies just below the stem's end, across its middle half
+    tt = np.linspace(t_both + 0.15 * width + 2, t_both + 0.6 * width + 3, 6)
+    ss = np.linspace(0.5 * (sl + sr) - 0.25 * width, 0.5 * (sl + sr) + 0.25 * width, 5)
+    P = c[None, None] + tt[:, None, None] * a + ss[None, :, None] * u
+    xi = np.round(P[..., 0]).astype(int).ravel()
+    yi = np.round(P[..., 1]).astype(int).ravel()
+    inside = (xi >= 0) & (xi < W) & (yi >= 0) & (yi < H)
+    if inside.mean() < 0.8:
+        return None, "edge", info
+    gr = ground_mask[yi[inside], xi[inside]].mean()
+    tr = tree_mask[yi[inside], xi[inside]].mean()
+    info["below_ground_tree"] = (float(gr), float(tr))
+    if gr >= 0.6 and tr <= 0.3:
+        return base, "ground", info
+    return None, "occluded", info

@@ -206,21 +206,21 @@ def write_manifest_error_model(sigma: dict, folder: str, n: int, manifest_path: 
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m monodbh.toolkit.error_model", description=__doc__.split("\n")[0])
-    ap.add_argument("folder")
-    ap.add_argument("--limit", type=int)
+    ap.add_argument("folder", nargs="+", help="dbh synth folder(s), measured together")
+    ap.add_argument("--limit", type=int, help="at most this many samples per folder")
     ap.add_argument("--json", help="write rows and summary here")
     ap.add_argument("--tap-base", type=float, metavar="PX", default=None,
                     help="simulate a user tapping the visible stem base with this 1-sigma noise (pixels)")
     ap.add_argument("--write", action="store_true",
                     help="store the measured sigmas in models/manifest.json for the shipped models")
     a = ap.parse_args(argv)
-    rows = collect(a.folder, a.limit, tap_noise_px=a.tap_base)
+    rows = [r for f in a.folder for r in collect(f, a.limit, tap_noise_px=a.tap_base)]
     summary = summarize(rows)
     print(_table(summary))
     sig = sigma_table(rows)
     print("sigma (relative, 1-sigma): " + ", ".join(f"{k} {v:.3f}" for k, v in sorted(sig.items())))
     if a.write:
-        print(f"written to {write_manifest_error_model(sig, a.folder, summary['n_measured'])}")
+        print(f"written to {write_manifest_error_model(sig, ' + '.join(a.folder), summary['n_measured'])}")
     if a.json:
         Path(a.json).write_text(json.dumps(dict(summary=summary, rows=rows), indent=1))
     return 0

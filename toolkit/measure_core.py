@@ -32,7 +32,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .edges import trace_stem_base, trunk_edges
+from .edges import trace_stem_base, track_stem_base, trunk_edges
 from .geometry import (fit_circle, fit_plane_ransac, metrology_distance, normalize,
                        project_perpendicular, rays_from_normalized, tangent_diameter)
 from .result import MeasureResult
@@ -65,6 +65,12 @@ ROPE_REFIND_MIN_FRACTION = 0.6
 #: scale sources precise enough (a few per cent) that the tangent estimate alone sets the DBH
 #: with network perception (see measure_from_perception)
 PRECISE_SCALE_SOURCES = ("pose", "stem_base_user", "stem_base")
+#: how the stem base is found when the user gives none: "edges" (silhouette edges followed down
+#: to the ground, :func:`~.edges.track_stem_base`), "mask" (the tree mask traced down, session 4),
+#: "either" (edges, else the mask). Measured on the calibration photos: the edges found 9 bases
+#: in 160 (seeds 9100, 9200), all within 13 % in scale (median 3.5 %); on seed 9100 the mask
+#: tracer found 8, 3 of them off by a factor 1.3-8.
+BASE_FINDER = "edges"
 #: typical height of a handheld phone above the ground (the scale prior "camera_height")
 CAMERA_HEIGHT_PRIOR_M = 1.5
 
@@ -278,8 +284,13 @@ def measure_from_perception(perc: Perception, photo: str = "", *, timings: dict 
         base_xy, base_status = np.asarray(perc.base_xy, np.float64), "user"
         flags.append("stem_base_from_user")
     else:
-        base_xy, base_status = trace_stem_base(perc.tree_mask, perc.ground_mask, mid_xy, edges.along,
-                                               edges.width_px)
+        base_xy, base_status, _trk = track_stem_base(gray, edges, perc.ground_mask, perc.tree_mask, rgb=perc.rgb,
+                                                     rope_half_px=perc.rope_half_px)
+        res.debug["base_tracked"] = (base_xy, base_status, _trk)
+        if BASE_FINDER == "mask" or (BASE_FINDER == "either" and base_xy is None):
+            base_xy, base_status = trace_stem_base(perc.tree_mask, perc.ground_mask, mid_xy, edges.along,
+                                                   edges.width_px)
+            res.debug["base_traced"] = (base_xy, base_status)
     if base_xy is not None:
         r_B = _rays(cam, base_xy[None])[0]
         lt, lb, resid = metrology_distance(r_A, r_B, v, ROPE_HEIGHT_M)
