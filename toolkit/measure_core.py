@@ -71,6 +71,8 @@ PRECISE_SCALE_SOURCES = ("pose", "stem_base_user", "stem_base")
 #: in 160 (seeds 9100, 9200), all within 13 % in scale (median 3.5 %); on seed 9100 the mask
 #: tracer found 8, 3 of them off by a factor 1.3-8.
 BASE_FINDER = "edges"
+#: scale-candidate name -> its key in the network error model (SIGMA_MODEL_NETWORK, manifest)
+_SN_KEY = {"ground_plane": "ground_plane_network"}
 #: typical height of a handheld phone above the ground (the scale prior "camera_height")
 CAMERA_HEIGHT_PRIOR_M = 1.5
 
@@ -113,6 +115,7 @@ class Perception:
     rope_band_mask: np.ndarray | None = None  # (H, W) bool band as wide as the rope's extent
     use_vanishing: bool = True      # estimate "up" from the vertical vanishing point (no pose)
     sigma_network: dict | None = None  # measured error model of the shipped networks (manifest)
+    rank_network: dict | None = None   # their typical errors, which pick the leading scale source
     extra: dict = field(default_factory=dict)
 
 
@@ -283,6 +286,10 @@ def measure_from_perception(perc: Perception, photo: str = "", *, timings: dict 
     if perc.base_xy is not None:
         base_xy, base_status = np.asarray(perc.base_xy, np.float64), "user"
         flags.append("stem_base_from_user")
+    elif perc.extra.get("tree_mask_from_rope") or "width_disagrees_rope" in flags:
+        # no segmented stem to confirm where the tracked edges end (the mask is the rope's
+        # band), or edges that are not the stem's: no automatic base
+        base_xy, base_status = None, "unconfirmed"
     else:
         base_xy, base_status, _trk = track_stem_base(gray, edges, perc.ground_mask, perc.tree_mask, rgb=perc.rgb,
                                                      rope_half_px=perc.rope_half_px)
@@ -360,7 +367,9 @@ def measure_from_perception(perc: Perception, photo: str = "", *, timings: dict 
     res.debug["scale_candidates"] = {k: (float(l), float(sg)) for k, (l, sg) in cands.items()}
     order = ["depth_gt", "pose", "stem_base_user", "ground_plane", "stem_base", "camera_height", "network"]
     # inverse-variance combination of the geometric sources that agree
-    best = min(cands, key=lambda k: cands[k][1])
+    # the leading source: least typical error where measured (manifest "rank"), else least sigma
+    rank = (perc.rank_network or {}) if net else {}
+    best = min(cands, key=lambda k: rank.get(_SN_KEY.get(k, k), cands[k][1]))
     lam, sig_rel = cands[best]
     used = [best]
     for k, (l2, s2) in cands.items():
@@ -377,7 +386,8 @@ def measure_from_perception(perc: Perception, photo: str = "", *, timings: dict 
         # the sources share one depth map and masks: their errors are correlated, so agreeing
         # does not shrink the uncertainty below the best single source's
         sig_rel = min(cands[k][1] for k in used)
-    res.scale_source = "+".join(sorted(used, key=order.index))
+    # the leading source first, then the others that agreed with it
+    res.scale_source = "+".join([best] + sorted((k for k in used if k != best), key=order.index))
     if best == "network":
         flags.append("scale_from_network")
     A = lam * r_A

@@ -62,6 +62,7 @@ class Session:
         em = manifest.get("error_model") or {}
         shipped = {k: models[k].get("sha256") for k in ("segmenter", "cden", "treenet")}
         self.sigma_network = em.get("sigma") if em.get("models") == shipped else None
+        self.rank_network = em.get("rank") if self.sigma_network is not None else None
         self.error_model_stale = bool(em) and self.sigma_network is None
         self.load_ms = 1000 * (time.perf_counter() - t0)
 
@@ -339,10 +340,11 @@ def _measure(path, rgb, camera, pick_xy, want_cloud, want_debug, sess: Session, 
                       tree_mask=tree_mask, ground_mask=ground, depth=depth, depth_is_metric=False,
                       silhouette_fn=silhouette_fn, source="network",
                       edge_search_px=max(3.0, 0.5 * cell), edge_mask=edge_mask,
-                      sigma_network=sess.sigma_network,
+                      sigma_network=sess.sigma_network, rank_network=sess.rank_network,
                       base_xy=None if base_xy is None else _to_work_pixel(base_xy, (sx, sy), cw, cam),
                       rope_length_px=_polyline_span(rope.polyline),
-                      rope_band_mask=band_mask)
+                      rope_band_mask=band_mask,
+                      extra={"tree_mask_from_rope": tid == 0})
     res = measure_from_perception(perc, str(path), timings=tm)
     if sess.sigma_network is None:
         flags_extra.append("sigma_model_default")     # no error model measured for these networks
