@@ -3,9 +3,11 @@
 Prints the table from which :data:`monodbh.toolkit.measure_core.SIGMA_MODEL_NETWORK` is set
 (run it on a folder rendered from seeds used neither for training nor for the benchmark)::
 
-    python -m monodbh.toolkit.error_model data/calset --json runs/error_model.json [--tap-base 3] [--write]
+    python -m monodbh.toolkit.error_model data/calset data/calset2 --json runs/error_model.json \
+        [--tap-base 3 [--untapped-too]] [--write]
 
-``--write`` stores the measured sigmas in ``models/manifest.json`` (``error_model``, with the
+``--write`` stores the measured sigmas (and each source's typical error, which picks the
+leading scale source) in ``models/manifest.json`` (``error_model``, with the
 sha256 of the three shipped networks); ``dbh measure`` uses them for exactly those networks
 and falls back to the built-in table (flag ``sigma_model_default``) otherwise.
 
