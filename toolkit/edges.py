@@ -12,7 +12,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["TrunkEdges", "trunk_edges", "trace_stem_base", "track_stem_base"]
+__all__ = ["TrunkEdges", "trunk_edges", "trace_stem_base", "track_stem_base", "REASON_OUT_OF_PHOTO"]
+
+#: :attr:`TrunkEdges.reason` when a side of the stem lies outside the photo at the rope
+REASON_OUT_OF_PHOTO = ("the stem runs out of the photo at the rope (step back or re-frame so that both "
+                       "sides of the stem show)")
 
 
 @dataclass
@@ -150,8 +154,7 @@ def trunk_edges(gray: np.ndarray, tree_mask: np.ndarray, center_xy, across_dir, 
             store.append((t, sval, float(g[j])))
     if len(lefts) < 3 or len(rights) < 3:
         if n_out >= 3:
-            return TrunkEdges(reason="the stem runs out of the photo at the rope (step back or re-frame "
-                                     "so that both sides of the stem show)")
+            return TrunkEdges(reason=REASON_OUT_OF_PHOTO)
         return TrunkEdges(reason="stem edges not found around the rope")
     L = np.array(lefts)
     R = np.array(rights)
@@ -232,7 +235,8 @@ def _peak_near(gray: np.ndarray, p: np.ndarray, u: np.ndarray, half: float) -> t
     """Strongest intensity edge on the segment ``p + s u, |s| <= half``: ``(s, gradient, snr)``.
 
     The profile is sampled every 0.25 px, smoothed (sigma 0.75 px) and differentiated; the
-    peak is refined to sub-sample precision. Returns ``(nan, 0)`` off the photo.
+    peak is refined to sub-sample precision; ``snr`` is the peak over the median of the
+    profile's other gradients. Returns ``(nan, 0, 0)`` off the photo.
     """
     H, W = gray.shape
     S = np.arange(-half - 2.5, half + 2.5 + 1e-9, 0.25)
@@ -253,11 +257,12 @@ def _peak_near(gray: np.ndarray, p: np.ndarray, u: np.ndarray, half: float) -> t
     return float(np.interp(pos, np.arange(len(S)), S)), float(g[j]), snr
 
 
-def _interior_colour(rgb: np.ndarray, p: np.ndarray, u: np.ndarray, half: float) -> np.ndarray:
-    """(4,) mean chromaticity (r, g, b) and intensity of the segment ``p + s u, |s| <= half``."""
+def _interior_colour(rgb_f: np.ndarray, p: np.ndarray, u: np.ndarray, half: float) -> np.ndarray:
+    """(4,) mean chromaticity (r, g, b) and intensity of the segment ``p + s u, |s| <= half``
+    of the (H, W, 3) float32 photo ``rgb_f``."""
     S = np.linspace(-half, half, 9)
     xs, ys = p[0] + S * u[0], p[1] + S * u[1]
-    v = _sample(rgb.astype(np.float32), xs[None], ys[None])[0]        # (9, 3)
+    v = _sample(rgb_f, xs[None], ys[None])[0]        # (9, 3)
     tot = v.sum(1, keepdims=True) + 30.0
     return np.r_[(v / tot).mean(0), v.mean() / 255.0]
 
@@ -312,12 +317,26 @@ def track_stem_base(gray: np.ndarray, edges: TrunkEdges, ground_mask: np.ndarray
     cols: list = []          # interior colour of the first tracked steps (the reference)
     col_bad = 0
     info: dict = {}
+    rgb_f = None if rgb is None else rgb.astype(np.float32)     # once: sampled at every step
+
     def predict(side, t_):
         h = np.array(hist[side][-10:])
         if len(h) >= 3:
             coef = np.linalg.lstsq(np.c_[np.ones(len(h)), h[:, 0]], h[:, 1], rcond=None)[0]
             return float(coef[0] + coef[1] * t_)
         return float(h[-1, 1])
+
+    def edge_at(side, t_, s_pred):
+        """The side's edge near its prediction ``s_pred`` at ``t_``: ``(s, gradient)`` if strong
+        enough, False if too weak, None off the photo."""
+        p = c + t_ * a + s_pred * u
+        s_off, g, snr = _peak_near(gray, p, u, max(2.0, 0.08 * w0))
+        if not np.isfinite(s_off):
+            return None
+        ref = np.median(g_first[side]) if g_first[side] else g
+        if g >= 2.0 and (g >= min_rel_gradient * ref or snr >= min_snr):
+            return s_pred + s_off, g
+        return False
 
     half_run = 0.0          # length tracked on one side only (the other hidden or low-contrast)
     while True:
@@ -328,15 +347,14 @@ def track_stem_base(gray: np.ndarray, edges: TrunkEdges, ground_mask: np.ndarray
             if not (2 <= p[0] < W - 3 and 2 <= p[1] < H - 3):
                 status = "edge"
                 break
-            s_off, g, snr = _peak_near(gray, p, u, max(2.0, 0.08 * w0))
-            if not np.isfinite(s_off):
+            e = edge_at(side, t, pred[side])
+            if e is None:
                 status = "edge"
                 break
-            ref = np.median(g_first[side]) if g_first[side] else g
-            if g >= 2.0 and (g >= min_rel_gradient * ref or snr >= min_snr):
-                pts[side] = pred[side] + s_off
+            if e:
+                pts[side] = e[0]
                 if len(g_first[side]) < 5:
-                    g_first[side].append(g)
+                    g_first[side].append(e[1])
         if status == "edge":
             break
         full = {**pred, **pts}
@@ -346,9 +364,9 @@ def track_stem_base(gray: np.ndarray, edges: TrunkEdges, ground_mask: np.ndarray
             ok = half_run <= 1.5 * w0
         elif ok:
             half_run = 0.0
-        if ok and rgb is not None:
+        if ok and rgb_f is not None:
             mid = c + t * a + 0.5 * (full["L"] + full["R"]) * u
-            col = _interior_colour(rgb, mid, u, 0.25 * (full["R"] - full["L"]))
+            col = _interior_colour(rgb_f, mid, u, 0.25 * (full["R"] - full["L"]))
             if len(cols) < 8:
                 cols.append(col)
             else:
@@ -381,13 +399,7 @@ def track_stem_base(gray: np.ndarray, edges: TrunkEdges, ground_mask: np.ndarray
         return None, status if status == "edge" else "lost", info
     # the end to a pixel: finer steps past the last step where the edges were found
     for t_f in np.arange(t_both + 0.5, t_both + 2 * dt, 0.5):
-        n_ok = 0
-        for side in ("L", "R"):
-            p = c + t_f * a + predict(side, t_f) * u
-            s_off, g, snr = _peak_near(gray, p, u, max(2.0, 0.08 * w0))
-            ref = np.median(g_first[side]) if g_first[side] else g
-            n_ok += bool(np.isfinite(s_off) and g >= 2.0 and (g >= min_rel_gradient * ref or snr >= min_snr))
-        if n_ok < 2:
+        if not all(edge_at(side, t_f, predict(side, t_f)) for side in ("L", "R")):
             break
         t_both = float(t_f)
     sl, sr = predict("L", t_both), predict("R", t_both)
@@ -397,22 +409,21 @@ def track_stem_base(gray: np.ndarray, edges: TrunkEdges, ground_mask: np.ndarray
     info["end_xy"] = base
     if status == "edge" or t_both < 1.5 * w0:
         return None, status if status == "edge" else "lost", info
+    def grid(t0, t1, half_frac):
+        """Pixels (x, y) of a 6 x 5 grid: ``t0..t1`` along the stem, +-half_frac x width across."""
+        tt = np.linspace(t0, t1, 6)
+        ss = np.linspace(0.5 * (sl + sr) - half_frac * width, 0.5 * (sl + sr) + half_frac * width, 5)
+        P = c[None, None] + tt[:, None, None] * a + ss[None, :, None] * u
+        return np.round(P[..., 0]).astype(int).ravel(), np.round(P[..., 1]).astype(int).ravel()
+
     # the stem's last stretch must still be on the (coarse) tree mask: tracked edges that ran on
     # into the ground (shadows, litter as dark as the bark) end well below where the mask does
-    tt = np.linspace(max(0.0, t_both - 0.6 * width), t_both, 6)
-    ss = np.linspace(0.5 * (sl + sr) - 0.3 * width, 0.5 * (sl + sr) + 0.3 * width, 5)
-    P = c[None, None] + tt[:, None, None] * a + ss[None, :, None] * u
-    xi = np.clip(np.round(P[..., 0]).astype(int).ravel(), 0, W - 1)
-    yi = np.clip(np.round(P[..., 1]).astype(int).ravel(), 0, H - 1)
-    info["end_on_mask"] = float(tree_mask[yi, xi].mean())
+    xi, yi = grid(max(0.0, t_both - 0.6 * width), t_both, 0.3)
+    info["end_on_mask"] = float(tree_mask[np.clip(yi, 0, H - 1), np.clip(xi, 0, W - 1)].mean())
     if info["end_on_mask"] < 0.25:
         return None, "off_mask", info
     # what lies just below the stem's end, across its middle half
-    tt = np.linspace(t_both + 0.15 * width + 2, t_both + 0.6 * width + 3, 6)
-    ss = np.linspace(0.5 * (sl + sr) - 0.25 * width, 0.5 * (sl + sr) + 0.25 * width, 5)
-    P = c[None, None] + tt[:, None, None] * a + ss[None, :, None] * u
-    xi = np.round(P[..., 0]).astype(int).ravel()
-    yi = np.round(P[..., 1]).astype(int).ravel()
+    xi, yi = grid(t_both + 0.15 * width + 2, t_both + 0.6 * width + 3, 0.25)
     inside = (xi >= 0) & (xi < W) & (yi >= 0) & (yi < H)
     if inside.mean() < 0.8:
         return None, "edge", info

@@ -32,7 +32,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .edges import trace_stem_base, track_stem_base, trunk_edges
+from .edges import REASON_OUT_OF_PHOTO, trace_stem_base, track_stem_base, trunk_edges
 from .geometry import (fit_circle, fit_plane_ransac, metrology_distance, normalize,
                        project_perpendicular, rays_from_normalized, tangent_diameter)
 from .result import MeasureResult
@@ -223,8 +223,8 @@ def measure_from_perception(perc: Perception, photo: str = "", *, timings: dict 
         if e3 and (not perc.rope_length_px or 0.8 < e3.width_px / perc.rope_length_px < 1.25):
             edges = e3
             flags.append("edges_from_rope_band")
-        elif e3.reason and "photo" in e3.reason:
-            edges = e3
+        elif e3.reason == REASON_OUT_OF_PHOTO:
+            edges = e3          # the more telling reason
     if not edges:
         res.error = f"cannot measure the roped stem: {edges.reason}"
         return res

@@ -15,6 +15,10 @@ from .io import read_sample, sample_done, write_sample
 __all__ = ["synthesize", "contact_sheet", "colorize_labels", "colorize_depth"]
 
 
+#: environment of the spawned ``dbh synth`` workers: one BLAS/OpenMP thread each
+_ONE_THREAD_ENV = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+
+
 def _one(args):
     folder, seed, index, size, distortion = args
     if sample_done(folder, index):
@@ -63,9 +67,6 @@ def synthesize(folder, count: int, seed: int, size=(512, 512), *, start: int = 0
                     os.environ[k] = v
     dt = time.perf_counter() - t0
     return dict(count=done, seconds=dt, samples_per_s=done / max(dt, 1e-9))
-
-
-_ONE_THREAD_ENV = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
 
 
 def _init_worker():
