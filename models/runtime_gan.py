@@ -33,7 +33,7 @@ __all__ = [
     "D_MIN", "D_MAX", "F_CANON_FRAC", "IMAGENET_MEAN", "IMAGENET_STD", "K_INFER", "MIN_CROP_PX",
     "depth_code_to_metric", "metric_to_depth_code", "letterbox_geometry", "letterbox",
     "unletterbox", "crop_side_px", "crop_affine", "crop_square", "normalize_rgb",
-    "silhouette_to_metric", "silhouette_targets", "DepthPredictor", "TreePredictor",
+    "silhouette_to_metric", "silhouette_targets", "ray_cos_map", "DepthPredictor", "TreePredictor",
 ]
 
 D_MIN: float = 0.5
@@ -191,22 +191,49 @@ def crop_square(img: np.ndarray, center_xy: tuple[float, float], side_px: float,
     return out
 
 
+def ray_cos_map(crop_box: tuple[float, float, float], out_px: int, K: np.ndarray) -> np.ndarray:
+    """``(P, P)`` float32: cosine of the angle between each crop pixel's ray and the optical axis.
+
+    ``crop_box = (x0, y0, S)`` as returned by :meth:`TreePredictor.predict` (crop pixel ``(i, j)``
+    has its centre at photo ``(x0 + (j + 0.5) S / P, y0 + (i + 0.5) S / P)``); ``K`` the (3, 3)
+    intrinsics of the undistorted photo.  A length along a pixel's ray times this cosine is its
+    extent in z.
+    """
+    x0, y0, S = (float(v) for v in crop_box)
+    K = np.asarray(K, np.float64)
+    g = (np.arange(out_px) + 0.5) * S / out_px
+    xn = (x0 + g - K[0, 2]) / K[0, 0]
+    yn = (y0 + g - K[1, 2]) / K[1, 1]
+    return (1.0 / np.sqrt(1.0 + xn[None, :] ** 2 + yn[:, None] ** 2)).astype(np.float32)
+
+
 def silhouette_targets(z1: np.ndarray, z2: np.ndarray, z_ref: float, side_px: float,
-                       fx_px: float) -> tuple[np.ndarray, np.ndarray]:
-    """Metric ``z1, z2`` -> ``(R_n, G_n)`` crop units (inverse of :func:`silhouette_to_metric`)."""
+                       fx_px: float, cos_map: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Metric ``z1, z2`` -> ``(R_n, G_n)`` crop units (inverse of :func:`silhouette_to_metric`).
+
+    With ``cos_map`` (:func:`ray_cos_map`, same shape) the thickness is the one along each
+    pixel's ray, ``(z2 - z1) / cos``: what a crop shows does not tell where in the photo it was
+    cut, so the network predicts the length along the ray, which does not depend on that (the z
+    extent of a round stem 35 deg off the optical axis is 18 % less than its diameter).
+    """
     u = fx_px / (z_ref * side_px)
-    return ((z1 - z_ref) * u).astype(np.float32), ((z2 - z1) * u).astype(np.float32)
+    g = (z2 - z1) if cos_map is None else (z2 - z1) / np.maximum(cos_map, 1e-3)
+    return ((z1 - z_ref) * u).astype(np.float32), (g * u).astype(np.float32)
 
 
 def silhouette_to_metric(R_n: np.ndarray, G_n: np.ndarray, z_ref: float, side_px: float,
-                         fx_px: float) -> tuple[np.ndarray, np.ndarray]:
+                         fx_px: float, cos_map: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """``(R_n, G_n)`` -> metric front and back depths ``(z_front, z_back)`` (m, z along the axis).
 
-    ``z_front = z_ref (1 + R_n S / f)``, ``z_back = z_front + z_ref G_n S / f``.
+    ``z_front = z_ref (1 + R_n S / f)``, ``z_back = z_front + z_ref G_n S / f`` (times ``cos_map``
+    when ``G_n`` is the thickness along the rays, see :func:`silhouette_targets`).
     """
     m = z_ref * side_px / fx_px
     zf = z_ref + np.asarray(R_n, np.float32) * m
-    return zf.astype(np.float32), (zf + np.asarray(G_n, np.float32) * m).astype(np.float32)
+    g = np.asarray(G_n, np.float32) * m
+    if cos_map is not None:
+        g = g * cos_map
+    return zf.astype(np.float32), (zf + g).astype(np.float32)
 
 
 # --------------------------------------------------------------------------- predictors
@@ -307,6 +334,8 @@ class TreePredictor(_GanPredictor):
         self.size = int(self.input_shape("crop")[-1])
         self.k_default = float(self.extra.get("k_infer", K_INFER))
         self.min_crop_px = float(self.extra.get("min_crop_px", MIN_CROP_PX))
+        #: "ray": G_n is the thickness along each pixel's ray; "z" (files before session 7): in z
+        self.thickness = str(self.extra.get("thickness", "z"))
 
     def feeds(self, rgb: np.ndarray, instance_mask: np.ndarray, center_xy: tuple[float, float],
               side_px: float) -> dict[str, np.ndarray]:
@@ -354,9 +383,17 @@ class TreePredictor(_GanPredictor):
         return (out[0].astype(np.float32), out[1].astype(np.float32),
                 (cx - side / 2, cy - side / 2, side))
 
-    @staticmethod
-    def to_metric(R_n: np.ndarray, G_n: np.ndarray, z_ref: float,
-                  crop_box: tuple[float, float, float], fx_px: float
+    def to_metric(self, R_n: np.ndarray, G_n: np.ndarray, z_ref: float,
+                  crop_box: tuple[float, float, float], fx_px: float, K: np.ndarray | None = None
                   ) -> tuple[np.ndarray, np.ndarray]:
-        """Metric ``(z_front, z_back)`` (m) from :meth:`predict` outputs and the axis depth ``z_ref``."""
-        return silhouette_to_metric(R_n, G_n, z_ref, crop_box[2], fx_px)
+        """Metric ``(z_front, z_back)`` (m) from :meth:`predict` outputs and the axis depth ``z_ref``.
+
+        ``K``: (3, 3) intrinsics of the photo the crop was cut from; needed by models whose
+        thickness is along the rays (``self.thickness == "ray"``, the manifest's ``thickness``).
+        """
+        cos = None
+        if self.thickness == "ray":
+            if K is None:
+                raise ValueError("this tree network predicts thickness along the rays: to_metric needs K")
+            cos = ray_cos_map(crop_box, np.asarray(R_n).shape[-1], K)
+        return silhouette_to_metric(R_n, G_n, z_ref, crop_box[2], fx_px, cos)

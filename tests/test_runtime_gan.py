@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from monodbh.models.runtime_gan import (DepthPredictor, TreePredictor, crop_square, letterbox,
-                                        letterbox_geometry, silhouette_targets,
+                                        letterbox_geometry, ray_cos_map, silhouette_targets,
                                         silhouette_to_metric, unletterbox)
 
 
@@ -45,6 +45,21 @@ def test_silhouette_metric_roundtrip():
     R, G = silhouette_targets(z1, z2, 3.0, 40.0, 500.0)
     f, b = silhouette_to_metric(R, G, 3.0, 40.0, 500.0)
     np.testing.assert_allclose(f, z1, rtol=1e-6)
+    np.testing.assert_allclose(b, z2, rtol=1e-6)
+
+
+def test_ray_thickness_roundtrip_and_geometry():
+    """Along-ray thickness: a round stem seen off-axis is thinner in z than along its ray."""
+    K = np.array([[500.0, 0, 320], [0, 500.0, 240], [0, 0, 1]])
+    cos = ray_cos_map((320 - 20.0, 240 - 20.0, 40.0), 4, K)
+    assert cos.shape == (4, 4) and cos.max() <= 1.0 and cos.min() > 0.99
+    far = ray_cos_map((820.0, 240 - 20.0, 40.0), 4, K)        # 520-560 px right: ~47 deg off
+    assert np.all(np.diff(far, axis=1) < 0)                    # cos falls away from the centre
+    np.testing.assert_allclose(far[1, 0], 1 / np.hypot(1, (820 + 5 - 320) / 500), rtol=1e-3, atol=2e-3)
+    z1 = np.full((4, 4), 3.0); z2 = z1 + 0.3 * far               # 0.3 m along every ray
+    R, G = silhouette_targets(z1, z2, 3.0, 40.0, 500.0, far)
+    np.testing.assert_allclose(G, 0.3 * 500 / (3.0 * 40.0), rtol=1e-5)
+    f, b = silhouette_to_metric(R, G, 3.0, 40.0, 500.0, far)
     np.testing.assert_allclose(b, z2, rtol=1e-6)
 
 
@@ -93,8 +108,14 @@ def test_tree_predictor_tiny(tiny_models):
     assert box == (40.0, 20.0, 80.0)                      # k = 4: side 4 x 20 px
     _, _, box = p.predict(rgb, m, (80.0, 60.0), 2.0, 300.0)
     assert box[2] == 24.0                                  # minimum crop side
-    zf, zb = p.to_metric(R, G, 5.0, (40.0, 20.0, 80.0), 300.0)
+    assert p.thickness == "ray"                            # the spec of models since session 7
+    with pytest.raises(ValueError, match="needs K"):
+        p.to_metric(R, G, 5.0, (40.0, 20.0, 80.0), 300.0)
+    K = np.array([[300.0, 0, 80], [0, 300.0, 60], [0, 0, 1]])
+    zf, zb = p.to_metric(R, G, 5.0, (40.0, 20.0, 80.0), 300.0, K)
     np.testing.assert_allclose(zf, 5.0 * (1 + R * 80 / 300), rtol=1e-5)
+    cos = ray_cos_map((40.0, 20.0, 80.0), 64, K)
+    np.testing.assert_allclose(zb - zf, 5.0 * G * 80 / 300 * cos, rtol=1e-4, atol=1e-6)
     assert zf.shape == (64, 64) and zb.shape == (64, 64)
 
 

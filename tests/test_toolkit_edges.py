@@ -1,5 +1,6 @@
 """Trunk silhouette edges at the rope (toolkit.edges.trunk_edges)."""
 import numpy as np
+import pytest
 
 from monodbh.toolkit.edges import trunk_edges
 
@@ -78,3 +79,59 @@ def test_stem_base_hidden_by_a_bush_is_not_reported():
     e = trunk_edges(gray, tree, (230.0, 250.0), (1.0, 0.0), rope_half_px=2.0, search_px=6.0)
     base, status, info = track_stem_base(gray, e, ground, tree, rgb=rgb, rope_half_px=2.0)
     assert base is None and status in ("occluded", "off_mask")
+
+
+def _level_scene(bush: bool):
+    """A level pinhole camera 1.5 m above flat ground (f 500 px, horizon at row 300) looking at
+    a 0.3 m stem 5 m away: rope (1.3 m) at row 320, base at row 450; the bush hides the stem
+    below 0.4 m (row 410)."""
+    from monodbh.calib import Camera
+    f, cx, cy, Z, h = 500.0, 240.0, 300.0, 5.0, 1.5
+    W, H = 480, 640
+    x0, x1 = cx - 0.5 * f * 0.3 / Z, cx + 0.5 * f * 0.3 / Z
+    rgb = np.zeros((H, W, 3), np.float32)
+    rgb[:300] = (150, 160, 170)
+    rgb[300:] = (120, 95, 60)
+    xs = np.arange(W, dtype=np.float64)
+    cover = np.clip(np.minimum(xs - x0, x1 - xs) + 0.5, 0, 1)[None, :, None]
+    stem = np.zeros((H, 1, 1))
+    stem[:450] = 1.0
+    rgb = rgb * (1 - cover * stem) + np.array([70.0, 60.0, 55.0]) * cover * stem
+    yy, xx = np.mgrid[0:H, 0:W]
+    tree = np.zeros((H, W), bool)
+    tree[:450, int(x0) + 2:int(x1) - 1] = True
+    if bush:
+        m = ((xx - cx) / 60.0) ** 2 + ((yy - 455) / 45.0) ** 2 < 1
+        rgb[m] = (40, 110, 35)
+        tree &= ~m
+    rgb = np.clip(rgb + np.random.default_rng(0).normal(0, 2.0, rgb.shape), 0, 255).astype(np.uint8)
+    ground = (yy >= 300) & ~tree
+    if bush:
+        ground &= ~m
+    rgb[318:322, int(x0):int(x1) + 1] = (200, 30, 30)            # the rope
+    depth = np.where(tree, 1.7 * Z, 0.0).astype(np.float32)       # a network 70 % too far
+    # (and no depth on the ground: no ground plane, the camera is taken as level)
+    cam = Camera(np.array([[f, 0, cx], [0, f, cy], [0, 0, 1]]), None, (W, H))
+    return rgb, tree, ground, depth, cam
+
+
+def test_stem_hidden_by_a_bush_caps_a_too_far_network_scale():
+    """The base is at or below where a bush hides the stem: a network distance beyond the
+    metrology through that point is capped to it (5 m true; 8.5 m network; bound 5 x 1.3 / 0.9)."""
+    from monodbh.toolkit.measure_core import Perception, measure_from_perception
+    for bush in (True, False):
+        rgb, tree, ground, depth, cam = _level_scene(bush)
+        p = Perception(rgb=rgb, camera=cam, rope_xy=np.array([240.0, 320.0]), rope_dir=np.array([1.0, 0.0]),
+                       rope_half_px=2.0, tree_mask=tree, ground_mask=ground, depth=depth,
+                       source="network", use_vanishing=False,
+                       sigma_network={"network": 0.37, "stem_base": 0.05})
+        r = measure_from_perception(p)
+        assert r.error is None, r.error
+        if bush:
+            assert "scale_capped_by_visible_stem" in r.flags
+            assert r.scale_source.startswith("visible_stem+network")
+            assert 6.9 < r.distance_m < 7.6                       # not 8.8: capped near 7.3
+        else:                                                     # the base itself is seen
+            assert r.scale_source.startswith("stem_base"), r.scale_source
+            assert r.distance_m == pytest.approx(5.15, rel=0.03)    # to the axis: 5 m + radius
+            assert "scale_capped_by_visible_stem" not in r.flags

@@ -322,7 +322,7 @@ def _measure(path, rgb, camera, pick_xy, want_cloud, want_debug, sess: Session, 
         t1 = time.perf_counter()
         center = 0.5 * (edges.left_xy + edges.right_xy)
         R_n, G_n, box = sess.trees.predict(img, tree_mask, tuple(center), edges.width_px, float(cam.K[0, 0]))
-        zf, zb = sess.trees.to_metric(R_n, G_n, z_axis, box, float(cam.K[0, 0]))
+        zf, zb = sess.trees.to_metric(R_n, G_n, z_axis, box, float(cam.K[0, 0]), np.asarray(cam.K, float))
         P = zf.shape[0]
         s = box[2] / P
         M = np.array([[s, 0, box[0] + 0.5 * s], [0, s, box[1] + 0.5 * s]], np.float64)

@@ -6,6 +6,8 @@ passes the accuracy gate) and ``report.json``; with ``ship=True`` copies the int
 """
 from __future__ import annotations
 
+import dataclasses
+
 import datetime as _dt
 import hashlib
 import json
@@ -52,6 +54,20 @@ def _source_or_none(cfg: dict[str, Any] | None):
         return source_from_config(cfg)
     except Exception:  # noqa: BLE001 - the kind's hook falls back to its default data
         return None
+
+
+def _shipped_spec(spec: ModelSpec, shipped_path: Path) -> ModelSpec:
+    """``spec`` with the shipped file's own kind-specific constants (its manifest ``extra``), so
+    that it is scored by its own conventions (e.g. the tree network's ``thickness``)."""
+    try:
+        entry = json.loads((shipped_path.parent / "manifest.json").read_text())["models"][spec.kind]
+        old = (entry.get("spec") or {}).get("extra") or {}
+    except (OSError, KeyError, ValueError):
+        return spec
+    extra = dict(spec.extra)
+    if spec.kind == "treenet":
+        extra["thickness"] = old.get("thickness", "z")
+    return dataclasses.replace(spec, extra=extra)
 
 
 def manifest_entry(spec: ModelSpec, file_name: str, sha256: str, report: dict[str, Any]) -> dict[str, Any]:
@@ -154,6 +170,10 @@ def export_run(run_dir: str | os.PathLike, ship: bool = False, n_calib: int = 32
     model, config, ckpt = load_run_model(run.path)
     spec: ModelSpec = model.spec
     kind = spec.kind
+    if kind == "treenet" and "thickness" in spec.extra:
+        # how the run's targets measured the thickness (runs before session 7: in z)
+        spec = dataclasses.replace(spec, extra={**spec.extra,
+                                                "thickness": config.get("train", {}).get("thickness", "z")})
     seed = int(config.get("seed", 0))
     out = run.export_dir
     out.mkdir(parents=True, exist_ok=True)
@@ -170,8 +190,8 @@ def export_run(run_dir: str | os.PathLike, ship: bool = False, n_calib: int = 32
     n_eval = n_eval or n_calib
     eval_feeds = calibration_inputs(kind, n_eval, seed + 202, spec, val_src)
 
-    def metric_fn(predict):
-        return evaluate_kind(kind, predict, n_eval, seed + 303, spec, val_src)
+    def metric_fn(predict, spec_=spec):
+        return evaluate_kind(kind, predict, n_eval, seed + 303, spec_, val_src)
 
     res = search_int8(fp32_path, int8_path, calib, eval_feeds, spec, metric_fn=metric_fn,
                       recipes=recipes or DEFAULT_RECIPES, tolerance=tolerance,
@@ -212,7 +232,7 @@ def export_run(run_dir: str | os.PathLike, ship: bool = False, n_calib: int = 32
     if shipped_path.exists():
         try:
             prev_sess = make_session(shipped_path, threads=threads)
-            prev = metric_fn(lambda f, _s=prev_sess: run_session(_s, f))
+            prev = metric_fn(lambda f, _s=prev_sess: run_session(_s, f), _shipped_spec(spec, shipped_path))
             report["previous"] = {"path": str(shipped_path), "sha256": sha256_file(shipped_path),
                                   "metrics": prev}
         except Exception as e:  # noqa: BLE001 - another architecture/spec: nothing to compare

@@ -25,7 +25,7 @@ from monodbh.models.modeling.registry import (IMAGENET_MEAN, IMAGENET_STD, Model
                                               TensorSpec, register)
 
 __all__ = ["TreeNetConfig", "TREENET_CONFIGS", "UNet", "PatchDiscriminator", "SILHOUETTE_DOC",
-           "RGB_OUT_SCALE", "K_INFER", "MIN_CROP_PX", "treenet_spec", "build_treenet",
+           "RGB_OUT_SCALE", "THICKNESS", "K_INFER", "MIN_CROP_PX", "treenet_spec", "build_treenet",
            "build_treenet_cycle"]
 
 #: Crop side at inference = K_INFER x trunk width (px), at least MIN_CROP_PX.
@@ -37,9 +37,12 @@ RGB_OUT_SCALE: float = 2.7
 SILHOUETTE_DOC = (
     "crop = square window of side S photo px (undistorted photo) centred on a stem-axis point, "
     "S = max(min_crop_px, k * trunk_width_px), resized to P; with z_ref the z (m) of that axis "
-    "point and f the photo focal length (px): R_n = (z1 - z_ref) * f / (z_ref * S), "
-    "G_n = (z2 - z1) * f / (z_ref * S); so z1 = z_ref * (1 + R_n * S / f), "
-    "z2 = z1 + z_ref * G_n * S / f")
+    "point, f the photo focal length (px) and c the cosine of each pixel's ray to the optical "
+    "axis: R_n = (z1 - z_ref) * f / (z_ref * S), G_n = (z2 - z1) / c * f / (z_ref * S) (thickness "
+    "along the ray); so z1 = z_ref * (1 + R_n * S / f), z2 = z1 + c * z_ref * G_n * S / f")
+
+#: how ``G_n`` is measured: "ray" (along each pixel's ray, since session 7) or "z" (before)
+THICKNESS = "ray"
 
 
 @dataclass(frozen=True)
@@ -143,7 +146,7 @@ def treenet_spec(size: str) -> ModelSpec:
         preprocess=(Preprocess(input="crop", mean=IMAGENET_MEAN, std=IMAGENET_STD,
                                resize="square_crop", interpolation="linear"),),
         metric="g_acc", higher_is_better=True,
-        extra={"silhouette": SILHOUETTE_DOC, "k_infer": K_INFER, "min_crop_px": MIN_CROP_PX,
+        extra={"silhouette": SILHOUETTE_DOC, "thickness": THICKNESS, "k_infer": K_INFER, "min_crop_px": MIN_CROP_PX,
                "crop_doc": "cv2.warpAffine of the window [cx - S/2, cx + S/2) (pixel-centre "
                            "convention, see runtime_gan.crop_affine), RGB bilinear with border = "
                            "mean colour, mask nearest with border 0"})

@@ -36,7 +36,7 @@ from torch.nn import functional as F
 
 from monodbh.models.modeling.registry import build
 from monodbh.models.modeling.treenet import build_treenet_cycle
-from monodbh.models.runtime_gan import crop_square, normalize_rgb, silhouette_targets
+from monodbh.models.runtime_gan import crop_square, normalize_rgb, ray_cos_map, silhouette_targets
 from monodbh.models.training.common import (AugmentConfig, DataSource, GeneratorSource,
                                             batch_indices, make_source, photometric,
                                             register_calibration, register_eval, sample_rng,
@@ -78,6 +78,9 @@ class TreeTrainConfig:
     center_jitter: float = 0.05    #: crop centre jitter, fraction of the trunk width
     mask_morph: float = 0.3        #: probability of a 1-px erode/dilate of the input mask
     hflip: float = 0.5
+    #: "ray": thickness target along each pixel's ray (position-free, the default since session
+    #: 7); "z": in z (runs before session 7, whose config has no such field)
+    thickness: str = "ray"
     val_n: int = 64                #: validation samples ...
     val_crops_per_sample: int = 4  #: ... and crops cut from each (random trunk/height, k)
     val_every: int = 500
@@ -92,6 +95,8 @@ class TreeTrainConfig:
         unknown = set(d) - names
         if unknown:
             raise TypeError(f"unknown tree training options: {sorted(unknown)}")
+        if d.get("thickness", "ray") not in ("ray", "z"):
+            raise ValueError(f"thickness must be ray or z, got {d['thickness']!r}")
         if d.get("mode", "sup") not in ("sup", "cycle", "cycle+sup"):
             raise ValueError(f"mode must be sup, cycle or cycle+sup, got {d['mode']!r}")
         return cls(**d)
@@ -176,12 +181,13 @@ def choose_crop(sample: dict[str, Any], rng: np.random.Generator, cfg: TreeTrain
 
 def tree_example(sample: dict[str, Any], crop: dict[str, Any], P: int,
                  rng: np.random.Generator | None = None, aug: AugmentConfig | None = None,
-                 hflip: float = 0.0, mask_morph: float = 0.0) -> dict[str, Any]:
+                 hflip: float = 0.0, mask_morph: float = 0.0, thickness: str = "ray") -> dict[str, Any]:
     """Network input and target of one crop (see module docstring).
 
-    Returns ``crop`` (4, P, P) float32 input, ``target`` (2, P, P) float32 ``(R_n, G_n)``,
-    ``valid`` (1, P, P) bool (tree pixels with ground truth) and the scalars ``z_ref``,
-    ``side_px``, ``fx``.
+    Returns ``crop`` (4, P, P) float32 input, ``target`` (2, P, P) float32 ``(R_n, G_n)``
+    (``G_n`` along the rays or in z, per ``thickness``), ``valid`` (1, P, P) bool (tree pixels
+    with ground truth), ``cos`` (P, P) (:func:`~monodbh.models.runtime_gan.ray_cos_map`) and the
+    scalars ``z_ref``, ``side_px``, ``fx``, ``thickness``.
     """
     c, S, tid = crop["center_xy"], crop["side_px"], crop["tree"]
     rgb = crop_square(sample["rgb"], c, S, P, "rgb")
@@ -191,7 +197,9 @@ def tree_example(sample: dict[str, Any], crop: dict[str, Any], P: int,
     z1 = crop_square(sample["z1"].astype(np.float32), c, S, P, "nearest")
     z2 = crop_square(sample["z2"].astype(np.float32), c, S, P, "nearest")
     valid = m_t & (z1 > 0) & (z2 >= z1)
-    R, G = silhouette_targets(z1, z2, crop["z_ref"], S, crop["fx"])
+    K = np.asarray(sample["meta"]["K"], np.float64)
+    cos = ray_cos_map((c[0] - S / 2, c[1] - S / 2, S), P, K)
+    R, G = silhouette_targets(z1, z2, crop["z_ref"], S, crop["fx"], cos if thickness == "ray" else None)
     target = np.stack([np.where(valid, R, 0.0), np.where(valid, G, 0.0)]).clip(-1, 1)
     if rng is not None:
         if aug is not None:
@@ -201,12 +209,13 @@ def tree_example(sample: dict[str, Any], crop: dict[str, Any], P: int,
             m_in = op(m_in.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
         if hflip and rng.random() < hflip:
             rgb, m_in = rgb[:, ::-1], m_in[:, ::-1]
-            target, valid = target[:, :, ::-1], valid[:, ::-1]
+            target, valid, cos = target[:, :, ::-1], valid[:, ::-1], cos[:, ::-1]
     x = np.concatenate([normalize_rgb(np.ascontiguousarray(rgb)), m_in[None].astype(np.float32)], 0)
     return {"crop": np.ascontiguousarray(x, np.float32),
             "target": np.ascontiguousarray(target, np.float32),
             "valid": np.ascontiguousarray(valid[None]), "z_ref": float(crop["z_ref"]),
-            "side_px": float(S), "fx": float(crop["fx"]), "axis_ratio": _axis_ratio(sample, tid)}
+            "side_px": float(S), "fx": float(crop["fx"]), "axis_ratio": _axis_ratio(sample, tid),
+            "cos": np.ascontiguousarray(cos, np.float32), "thickness": thickness}
 
 
 def _axis_ratio(sample: dict[str, Any], tid: int) -> float:
@@ -222,10 +231,17 @@ def _axis_ratio(sample: dict[str, Any], tid: int) -> float:
 OVALITY_BINS = (0.0, 0.85, 0.90, 0.95, 0.98)
 
 
-def tree_metrics(pred: np.ndarray, ex: dict[str, Any]) -> dict[str, float]:
-    """Metrics of one predicted silhouette ``(2, P, P)`` against :func:`tree_example` ``ex``."""
+def tree_metrics(pred: np.ndarray, ex: dict[str, Any], pred_thickness: str = "ray") -> dict[str, float]:
+    """Metrics of one predicted silhouette ``(2, P, P)`` against :func:`tree_example` ``ex``.
+
+    ``pred_thickness``: how the model measures ``G_n`` ("ray" or "z", the manifest's
+    ``thickness``); prediction and target are both compared as thickness in z.
+    """
     v = ex["valid"][0]
+    cos = ex.get("cos")
+    pred = np.stack([pred[0], pred[1] * cos if pred_thickness == "ray" else pred[1]])
     tgt = ex["target"]
+    tgt = np.stack([tgt[0], tgt[1] * cos if ex.get("thickness", "z") == "ray" else tgt[1]])
     out: dict[str, float] = {}
     if v.any():
         out["l1_R"] = float(np.abs(pred[0] - tgt[0])[v].mean())
@@ -288,7 +304,7 @@ def _examples_from(src: DataSource, first: int, n: int, seed: int, cfg: TreeTrai
             if crop is not None:
                 ex = tree_example(s, crop, P, rng if train_rng is not None else None, aug,
                                   cfg.hflip if train_rng is not None else 0.0,
-                                  cfg.mask_morph if train_rng is not None else 0.0)
+                                  cfg.mask_morph if train_rng is not None else 0.0, cfg.thickness)
                 break
         if ex is None:
             raise RuntimeError(f"no usable trunk in samples {base} + 7919 * 0..7 of {src.config()}")
@@ -345,6 +361,8 @@ def train_trees(run_dir: str, steps: int = 20000, data: Any = None, resume: bool
     if resume and run.config_path.exists():
         old = run.read_config()
         options = {**old.get("train", {}), **options}
+        if "thickness" not in old.get("train", {}):
+            options.setdefault("thickness", "z")        # a run from before session 7
         if data is None and old.get("data", {}).get("type") != "list":
             data = old["data"]
         if val_data is None and old.get("val_data", {}).get("type") not in ("list", "same"):
@@ -449,7 +467,7 @@ def train_trees(run_dir: str, steps: int = 20000, data: Any = None, resume: bool
         for k0 in range(0, len(val_cache), 16):
             items = val_cache[k0:k0 + 16]
             pred = G(_collate(items, device)["crop"]).cpu().numpy()
-            ms += [tree_metrics(p, it) for p, it in zip(pred, items)]
+            ms += [tree_metrics(p, it, cfg.thickness) for p, it in zip(pred, items)]
         return _mean(ms)
 
     config = {"kind": "treenet", "size": cfg.size, "seed": cfg.seed, "batch_size": cfg.batch_size,
@@ -495,7 +513,8 @@ def evaluate(predict: Callable[[dict[str, np.ndarray]], dict[str, np.ndarray]], 
     cfg = TreeTrainConfig(center_jitter=0.0, p_rope=0.5)
     src = _eval_source(data, seed)
     exs = _examples_from(src, 0, n, seed, cfg, P, K_INFER, indices=pick_indices(src, n, seed))
-    ms = [tree_metrics(predict({"crop": e["crop"][None]})["silhouette"][0], e) for e in exs]
+    th = str((getattr(spec, "extra", None) or {}).get("thickness", "z"))
+    ms = [tree_metrics(predict({"crop": e["crop"][None]})["silhouette"][0], e, th) for e in exs]
     out = _mean(ms)
     # how the thickness error grows with the stem's ovality (one view sees one width only)
     q = np.array([e.get("axis_ratio", np.nan) for e in exs])
