@@ -120,7 +120,7 @@ def _table(results, console) -> None:
                                                            for s in ("stem_base", "pose"))]
     if weak:
         console.print(Text(f"{len(weak)} of {len(results)} measured without the stem base: their scale "
-                           "comes from the depth network (about 20 % off, median). Where the stem base is in "
+                           "comes from the depth network (about 18 % off, median). Where the stem base is in "
                            "the photo, tap it: dbh measure PHOTO --calib CAM --base X,Y", style="dim"))
 
 

@@ -135,3 +135,16 @@ def test_stem_hidden_by_a_bush_caps_a_too_far_network_scale():
             assert r.scale_source.startswith("stem_base"), r.scale_source
             assert r.distance_m == pytest.approx(5.15, rel=0.03)    # to the axis: 5 m + radius
             assert "scale_capped_by_visible_stem" not in r.flags
+    # a distance calibration (error model) applies to network-led scales only, before the cap
+    rgb, tree, ground, depth, cam = _level_scene(False)
+    kw = dict(rgb=rgb, camera=cam, rope_xy=np.array([240.0, 320.0]), rope_dir=np.array([1.0, 0.0]),
+              rope_half_px=2.0, tree_mask=tree, ground_mask=np.zeros_like(ground), depth=depth,
+              source="network", use_vanishing=False)
+    r0 = measure_from_perception(Perception(**kw))
+    r1 = measure_from_perception(Perception(**kw, distance_calibration={"a": 0.0, "b": 0.7}))
+    assert "distance_calibrated" in r1.flags and r1.scale_source == "network"
+    lam0 = r0.debug["lam_combined"]                     # 8.8 m: capped to 5.2 without calibration
+    assert r1.debug["lam_uncalibrated"] == pytest.approx(lam0)
+    lam1 = np.exp(0.7 * np.log(lam0))                   # 4.6 m: below the bound, not capped
+    assert np.linalg.norm(r1.debug["axis_point"]) == pytest.approx(lam1, rel=1e-6)
+    assert r1.dbh_cm / r0.dbh_cm == pytest.approx(lam1 / np.linalg.norm(r0.debug["axis_point"]), rel=2e-3)

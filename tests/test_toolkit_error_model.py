@@ -43,3 +43,21 @@ def test_session_uses_error_model_only_for_its_models(tmp_path):
     (tmp_path / "manifest.json").write_text(json.dumps(man))
     s = Session(tmp_path)
     assert s.sigma_network is None and s.error_model_stale
+
+
+def test_distance_calibration_fit_recovers_a_shrinkage():
+    """Network distances scattered twice as widely (in log) as the truth around 4 m: the fit
+    finds b ~ 0.5 and shrinks them back; rows led by a precise source are left out."""
+    from monodbh.toolkit.error_model import distance_calibration_fit
+    rng = np.random.default_rng(0)
+    true = np.exp(rng.uniform(np.log(1.5), np.log(12), 200))
+    net = np.exp(np.log(4.0) + 2.0 * (np.log(true) - np.log(4.0)) + rng.normal(0, 0.02, 200))
+    rows = [dict(dbh_cm=20.0, scale_leader="network", lam_true=float(t), lam_combined_log_err=float(np.log(n / t)))
+            for t, n in zip(true, net)]
+    rows += [dict(dbh_cm=20.0, scale_leader="stem_base_user", lam_true=5.0, lam_combined_log_err=1.0)] * 50
+    fit = distance_calibration_fit(rows)
+    assert fit["n"] == 200
+    assert fit["b"] == pytest.approx(0.5, abs=0.02)
+    assert fit["fixed_point_m"] == pytest.approx(4.0, rel=0.05)
+    assert fit["median_abs_ln_after"] < 0.05 < fit["median_abs_ln_before"]
+    assert distance_calibration_fit(rows[:10]) is None

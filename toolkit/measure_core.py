@@ -68,6 +68,9 @@ ROPE_REFIND_MIN_FRACTION = 0.6
 #: scale sources precise enough (a few per cent) that the tangent estimate alone sets the DBH
 #: with network perception (see measure_from_perception)
 PRECISE_SCALE_SOURCES = ("pose", "stem_base_user", "stem_base")
+#: scale sources that come from the depth network (their distances get the error model's
+#: calibration, ``Perception.distance_calibration``)
+NETWORK_SCALE_SOURCES = ("network", "ground_plane", "camera_height")
 #: a scale more than this fraction beyond the visible stem's bound is capped to the bound
 SCALE_BOUND_SLACK = 0.03
 #: how the stem base is found when the user gives none: "edges" (silhouette edges followed down
@@ -121,6 +124,7 @@ class Perception:
     use_vanishing: bool = True      # estimate "up" from the vertical vanishing point (no pose)
     sigma_network: dict | None = None  # measured error model of the shipped networks (manifest)
     rank_network: dict | None = None   # their typical errors, which pick the leading scale source
+    distance_calibration: dict | None = None  # {"a", "b"}: ln d -> a + b ln d for network-led scales
     extra: dict = field(default_factory=dict)
 
 
@@ -404,6 +408,15 @@ def measure_from_perception(perc: Perception, photo: str = "", *, timings: dict 
         sig_rel = min(cands[k][1] for k in used)
     # the leading source first, then the others that agreed with it
     res.scale_source = "+".join([best] + sorted((k for k in used if k != best), key=order.index))
+    res.debug["scale_leader"], res.debug["lam_combined"] = best, float(lam)
+    calib = perc.distance_calibration if net else None
+    if calib and best in NETWORK_SCALE_SOURCES:
+        # the network's distances are noisier than the spread of distances people stand at:
+        # E[ln true | ln network] measured on the calibration sets shrinks them towards the
+        # typical distance (error model, Theil-Sen fit; see README "How the scale is set")
+        res.debug["lam_uncalibrated"] = float(lam)
+        lam = float(np.exp(calib["a"] + calib["b"] * np.log(lam)))
+        flags.append("distance_calibrated")
     bound = res.debug.get("scale_bound")
     if (net and bound is not None and bound[1] == "occluded" and best not in PRECISE_SCALE_SOURCES
             and lam > bound[0] * (1 + SCALE_BOUND_SLACK)):

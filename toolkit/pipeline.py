@@ -63,6 +63,7 @@ class Session:
         shipped = {k: models[k].get("sha256") for k in ("segmenter", "cden", "treenet")}
         self.sigma_network = em.get("sigma") if em.get("models") == shipped else None
         self.rank_network = em.get("rank") if self.sigma_network is not None else None
+        self.distance_calibration = em.get("distance_calibration") if self.sigma_network is not None else None
         self.error_model_stale = bool(em) and self.sigma_network is None
         self.load_ms = 1000 * (time.perf_counter() - t0)
 
@@ -341,6 +342,7 @@ def _measure(path, rgb, camera, pick_xy, want_cloud, want_debug, sess: Session, 
                       silhouette_fn=silhouette_fn, source="network",
                       edge_search_px=max(3.0, 0.5 * cell), edge_mask=edge_mask,
                       sigma_network=sess.sigma_network, rank_network=sess.rank_network,
+                      distance_calibration=sess.distance_calibration,
                       base_xy=None if base_xy is None else _to_work_pixel(base_xy, (sx, sy), cw, cam),
                       rope_length_px=_polyline_span(rope.polyline),
                       rope_band_mask=band_mask,
