@@ -14,9 +14,10 @@ Depth (:class:`DepthPredictor`)
 Trees (:class:`TreePredictor`)
     A square window of side ``S_px = max(24, k * trunk_width_px)`` photo pixels centred on the
     stem-axis point is resampled to ``P x P`` (``P = 128``) together with the tree's mask; the
-    network returns ``R_n`` (front depth) and ``G_n`` (thickness) in crop units:
-    ``z1 = z_ref (1 + R_n S_px / f)``, ``z2 = z1 + z_ref G_n S_px / f``
-    (:func:`silhouette_to_metric`).
+    network returns ``R_n`` (front depth) and ``G_n`` (thickness along each pixel's ray) in
+    crop units: ``z1 = z_ref (1 + R_n S_px / f)``, ``z2 = z1 + c z_ref G_n S_px / f`` with ``c``
+    the cosine of the pixel's ray to the optical axis (:func:`ray_cos_map`,
+    :func:`silhouette_to_metric`; files before session 7 have ``thickness: "z"`` and no ``c``).
 """
 from __future__ import annotations
 

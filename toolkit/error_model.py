@@ -276,6 +276,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--write", action="store_true",
                     help="store the measured sigmas in models/manifest.json for the shipped models")
     a = ap.parse_args(argv)
+    from monodbh.toolkit.pipeline import Session
+    stale = Session().sigma_network is None     # no error model yet for the shipped networks
     rows = [r for f in a.folder for r in collect(f, a.limit, tap_noise_px=a.tap_base)]
     summary = summarize(rows)
     print(_table(summary))
@@ -298,6 +300,11 @@ def main(argv: list[str] | None = None) -> int:
     if a.write:
         print("rank (typical relative error): " + ", ".join(f"{k} {v:.3f}" for k, v in sorted(rank.items())))
         print(f"written to {write_manifest_error_model(sig, ' + '.join(a.folder), summary['n_measured'], rank=rank, distance_calibration=dcal)}")
+        if stale:
+            # which source leads (and so which photos the distance calibration is fitted on)
+            # depends on the sigmas: measured without them, the calibration is provisional
+            print("note: measured with the built-in sigmas (no error model for these networks yet): "
+                  "run this command once more to fit the distance calibration with the measured ones")
     if a.json:
         Path(a.json).write_text(json.dumps(dict(summary=summary, rows=rows), indent=1))
     return 0
