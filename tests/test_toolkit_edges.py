@@ -148,3 +148,8 @@ def test_stem_hidden_by_a_bush_caps_a_too_far_network_scale():
     lam1 = np.exp(0.7 * np.log(lam0))                   # 4.6 m: below the bound, not capped
     assert np.linalg.norm(r1.debug["axis_point"]) == pytest.approx(lam1, rel=1e-6)
     assert r1.dbh_cm / r0.dbh_cm == pytest.approx(lam1 / np.linalg.norm(r0.debug["axis_point"]), rel=2e-3)
+    # the calibrated distances' own measured spread replaces the raw network's sigma
+    r2 = measure_from_perception(Perception(**kw, distance_calibration={"a": 0.0, "b": 0.7, "sigma": 0.2}))
+    assert r2.dbh_cm == pytest.approx(r1.dbh_cm)
+    assert r2.dbh_sigma_cm / r2.dbh_cm < r1.dbh_sigma_cm / r1.dbh_cm
+    assert r2.dbh_sigma_cm / r2.dbh_cm == pytest.approx(0.2, abs=0.05)

@@ -60,4 +60,5 @@ def test_distance_calibration_fit_recovers_a_shrinkage():
     assert fit["b"] == pytest.approx(0.5, abs=0.02)
     assert fit["fixed_point_m"] == pytest.approx(4.0, rel=0.05)
     assert fit["median_abs_ln_after"] < 0.05 < fit["median_abs_ln_before"]
+    assert 0 < fit["sigma"] < 0.05
     assert distance_calibration_fit(rows[:10]) is None

@@ -214,6 +214,9 @@ def distance_calibration_fit(rows: list[dict], min_n: int = 20) -> dict | None:
     (``b < 1``; the fixed point is ``exp(a / (1 - b))``). Returns ``{"a", "b", "n", ...}`` or None
     with fewer than ``min_n`` rows.
 
+    ``sigma`` is the tail-aware 1-sigma (:func:`tail_sigma`) of the calibrated distances: the
+    uncertainty of a calibrated scale.
+
     Measured (session 7, calibration sets seeds 9100 + 9200, 105 network-led photos):
     ``a = 0.34, b = 0.71``; on the benchmark (seed 9000) DBH MAE 7.86 -> 6.47 cm, median
     5.87 -> 4.31 cm, 2-sigma coverage unchanged (97.6 %).
@@ -230,7 +233,7 @@ def distance_calibration_fit(rows: list[dict], min_n: int = 20) -> dict | None:
     x = y + np.array([r["lam_combined_log_err"] for r in ok])
     b, a, _, _ = theilslopes(y, x)
     e0, e1 = y - x, y - (a + b * x)
-    return {"a": float(a), "b": float(b), "n": int(len(ok)),
+    return {"a": float(a), "b": float(b), "n": int(len(ok)), "sigma": tail_sigma(e1),
             "fixed_point_m": float(np.exp(a / (1 - b))) if b < 1 else None,
             "median_abs_ln_before": float(np.median(np.abs(e0))), "median_abs_ln_after": float(np.median(np.abs(e1))),
             "rms_ln_before": float(np.sqrt(np.mean(e0 ** 2))), "rms_ln_after": float(np.sqrt(np.mean(e1 ** 2))),

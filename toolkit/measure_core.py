@@ -417,6 +417,9 @@ def measure_from_perception(perc: Perception, photo: str = "", *, timings: dict 
         res.debug["lam_uncalibrated"] = float(lam)
         lam = float(np.exp(calib["a"] + calib["b"] * np.log(lam)))
         flags.append("distance_calibrated")
+        if calib.get("sigma"):
+            # the measured spread of the calibrated distances (narrower than the raw network's)
+            sig_rel = float(calib["sigma"])
     bound = res.debug.get("scale_bound")
     if (net and bound is not None and bound[1] == "occluded" and best not in PRECISE_SCALE_SOURCES
             and lam > bound[0] * (1 + SCALE_BOUND_SLACK)):
