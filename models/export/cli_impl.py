@@ -57,17 +57,17 @@ def _source_or_none(cfg: dict[str, Any] | None):
 
 
 def _shipped_spec(spec: ModelSpec, shipped_path: Path) -> ModelSpec:
-    """``spec`` with the shipped file's own kind-specific constants (its manifest ``extra``), so
-    that it is scored by its own conventions (e.g. the tree network's ``thickness``)."""
+    """The shipped file's own spec (its manifest entry: input size, kind-specific constants such
+    as the tree network's ``thickness``), so that it is scored by its own conventions on the same
+    data; ``spec`` when the manifest has no usable entry."""
     try:
         entry = json.loads((shipped_path.parent / "manifest.json").read_text())["models"][spec.kind]
-        old = (entry.get("spec") or {}).get("extra") or {}
-    except (OSError, KeyError, ValueError):
+        old = ModelSpec.from_dict(entry["spec"])
+    except (OSError, KeyError, ValueError, TypeError):
         return spec
-    extra = dict(spec.extra)
-    if spec.kind == "treenet":
-        extra["thickness"] = old.get("thickness", "z")
-    return dataclasses.replace(spec, extra=extra)
+    if spec.kind == "treenet" and "thickness" not in old.extra:
+        old = dataclasses.replace(old, extra={**old.extra, "thickness": "z"})   # before session 7
+    return old
 
 
 def manifest_entry(spec: ModelSpec, file_name: str, sha256: str, report: dict[str, Any]) -> dict[str, Any]:
