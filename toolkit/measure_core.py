@@ -124,7 +124,7 @@ class Perception:
     use_vanishing: bool = True      # estimate "up" from the vertical vanishing point (no pose)
     sigma_network: dict | None = None  # measured error model of the shipped networks (manifest)
     rank_network: dict | None = None   # their typical errors, which pick the leading scale source
-    distance_calibration: dict | None = None  # {"a", "b"}: ln d -> a + b ln d for network-led scales
+    distance_calibration: dict | None = None  # {"a", "b", "sigma"}: ln d -> a + b ln d for network-led scales
     extra: dict = field(default_factory=dict)
 
 
@@ -309,6 +309,7 @@ def measure_from_perception(perc: Perception, photo: str = "", *, timings: dict 
             base_xy, base_status = trace_stem_base(perc.tree_mask, perc.ground_mask, mid_xy, edges.along,
                                                    edges.width_px)
             res.debug["base_traced"] = (base_xy, base_status)
+
     def base_metrology(xy):
         """(axis distance along r_A, depth of the base) with ``xy`` the stem's front ground contact."""
         r_B = _rays(cam, np.asarray(xy, np.float64)[None])[0]
