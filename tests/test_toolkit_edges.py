@@ -34,11 +34,9 @@ def test_stem_leaving_the_photo_says_so():
     assert "runs out of the photo" in e.reason
 
 
-def _scene(bush: bool = False, W=480, H=640, x0=200.0, x1=260.0, y_base=560):
-    """A stem standing on the ground: sky-grey background above the horizon (y 300), brown
-    ground below, the stem (x0..x1) from the top down to ``y_base``; optionally a green bush
-    hiding the stem's lowest 120 px. Returns rgb, gray, tree and ground masks."""
-    rng = np.random.default_rng(0)
+def _paint_stem(W, H, x0, x1, y_base):
+    """(H, W, 3) float32: sky grey above row 300, brown ground below, a bark-coloured stem
+    between x0 and x1 (anti-aliased) from the top down to ``y_base``."""
     rgb = np.zeros((H, W, 3), np.float32)
     rgb[:300] = (150, 160, 170)
     rgb[300:] = (120, 95, 60)
@@ -46,8 +44,15 @@ def _scene(bush: bool = False, W=480, H=640, x0=200.0, x1=260.0, y_base=560):
     cover = np.clip(np.minimum(xs - x0, x1 - xs) + 0.5, 0, 1)[None, :, None]
     stem = np.zeros((H, 1, 1))
     stem[:y_base] = 1.0
-    bark = np.array([70.0, 60.0, 55.0])
-    rgb = rgb * (1 - cover * stem) + bark * cover * stem
+    return rgb * (1 - cover * stem) + np.array([70.0, 60.0, 55.0]) * cover * stem
+
+
+def _scene(bush: bool = False, W=480, H=640, x0=200.0, x1=260.0, y_base=560):
+    """A stem standing on the ground: sky-grey background above the horizon (y 300), brown
+    ground below, the stem (x0..x1) from the top down to ``y_base``; optionally a green bush
+    hiding the stem's lowest 120 px. Returns rgb, gray, tree and ground masks."""
+    rng = np.random.default_rng(0)
+    rgb = _paint_stem(W, H, x0, x1, y_base)
     if bush:
         yy, xx = np.mgrid[0:H, 0:W]
         m = ((xx - 230) / 90.0) ** 2 + ((yy - y_base + 30) / 90.0) ** 2 < 1
@@ -89,14 +94,7 @@ def _level_scene(bush: bool):
     f, cx, cy, Z, h = 500.0, 240.0, 300.0, 5.0, 1.5
     W, H = 480, 640
     x0, x1 = cx - 0.5 * f * 0.3 / Z, cx + 0.5 * f * 0.3 / Z
-    rgb = np.zeros((H, W, 3), np.float32)
-    rgb[:300] = (150, 160, 170)
-    rgb[300:] = (120, 95, 60)
-    xs = np.arange(W, dtype=np.float64)
-    cover = np.clip(np.minimum(xs - x0, x1 - xs) + 0.5, 0, 1)[None, :, None]
-    stem = np.zeros((H, 1, 1))
-    stem[:450] = 1.0
-    rgb = rgb * (1 - cover * stem) + np.array([70.0, 60.0, 55.0]) * cover * stem
+    rgb = _paint_stem(W, H, x0, x1, 450)
     yy, xx = np.mgrid[0:H, 0:W]
     tree = np.zeros((H, W), bool)
     tree[:450, int(x0) + 2:int(x1) - 1] = True

@@ -279,8 +279,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--write", action="store_true",
                     help="store the measured sigmas in models/manifest.json for the shipped models")
     a = ap.parse_args(argv)
-    from monodbh.toolkit.pipeline import Session
-    stale = Session().sigma_network is None     # no error model yet for the shipped networks
+    from monodbh.models.runtime import MANIFEST_PATH, load_manifest
+    from monodbh.toolkit.pipeline import fresh_error_model
+    stale = not fresh_error_model(load_manifest(MANIFEST_PATH))   # none yet for the shipped networks
     rows = [r for f in a.folder for r in collect(f, a.limit, tap_noise_px=a.tap_base)]
     summary = summarize(rows)
     print(_table(summary))

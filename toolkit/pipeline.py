@@ -15,7 +15,7 @@ from ..calib.errors import MonodbhError
 from .measure_core import Perception, measure_from_perception
 from .result import MeasureResult, PointCloud
 
-__all__ = ["Session", "measure_photo", "reconstruct_photo", "WORK_LONG_SIDE_PX", "unproject_depth",
+__all__ = ["Session", "fresh_error_model", "measure_photo", "reconstruct_photo", "WORK_LONG_SIDE_PX", "unproject_depth",
            "rope_across_trunk", "ROPE_WEAK_SCORE"]
 
 #: Photos are processed at this long side (pixels); edges are located to sub-pixel precision.
@@ -59,13 +59,21 @@ class Session:
         self.models_dir = mdir
         # the error model measured for exactly these networks (python -m monodbh.toolkit.error_model
         # FOLDER --write): per-source 1-sigma; stale (built-in defaults, flagged) after retraining
-        em = manifest.get("error_model") or {}
-        shipped = {k: models[k].get("sha256") for k in ("segmenter", "cden", "treenet")}
-        self.sigma_network = em.get("sigma") if em.get("models") == shipped else None
-        self.rank_network = em.get("rank") if self.sigma_network is not None else None
-        self.distance_calibration = em.get("distance_calibration") if self.sigma_network is not None else None
-        self.error_model_stale = bool(em) and self.sigma_network is None
+        em = fresh_error_model(manifest)
+        self.sigma_network = em.get("sigma")
+        self.rank_network = em.get("rank")
+        self.distance_calibration = em.get("distance_calibration")
+        self.error_model_stale = bool(manifest.get("error_model")) and not em
         self.load_ms = 1000 * (time.perf_counter() - t0)
+
+
+def fresh_error_model(manifest: dict) -> dict:
+    """``manifest["error_model"]`` when it was measured for exactly the shipped networks (their
+    sha256), else ``{}`` (stale after retraining, or never measured)."""
+    em = manifest.get("error_model") or {}
+    models = manifest.get("models", manifest)
+    shipped = {k: (models.get(k) or {}).get("sha256") for k in ("segmenter", "cden", "treenet")}
+    return em if em.get("sigma") is not None and em.get("models") == shipped else {}
 
 
 def _work_image(rgb: np.ndarray, camera):

@@ -7,7 +7,6 @@ passes the accuracy gate) and ``report.json``; with ``ship=True`` copies the int
 from __future__ import annotations
 
 import dataclasses
-
 import datetime as _dt
 import hashlib
 import json
