@@ -299,8 +299,28 @@ def _measure(path, rgb, camera, pick_xy, want_cloud, want_debug, sess: Session, 
         on = [c for c in top if rope_across_trunk(c, seg.instance, cell)]
         if len(on) == 1:
             rope = detect_rope(img, None, pick_xy=on[0].center_xy)
+    weak_refused = bool(rope) and rope.weak and not rope_across_trunk(rope, seg.instance, cell)
+    rope_flags = []
+    # at a user's tap, the band detector's nearest candidate is kept when it is near the tap and
+    # rope-like; else the rope is searched on the tapped stem
+    far_from_pick = (pick is not None and bool(rope)
+                     and (np.hypot(rope.center_xy[0] - pick[0], rope.center_xy[1] - pick[1]) > max(15.0, 2 * cell)
+                          or rope.score < ROPE_WEAK_SCORE))
+    if (not rope and not rope.ambiguous) or weak_refused or far_from_pick or (not rope and pick is not None):
+        # a rope thinner than a pixel is no connected line: its red-ness averaged across the
+        # segmented trunk's width still stands out (mask-guided search, toolkit/rope_stem.py)
+        from .rope_stem import detect_rope_on_stems
+        alt = detect_rope_on_stems(img, seg.instance, pick_xy=pick, rope_candidates=rope.candidates)
+        if alt:
+            rope, weak_refused = alt, False
+            rope_flags.append("rope_from_stem_profile")
+        elif pick is not None and bool(rope) and np.hypot(
+                rope.center_xy[0] - pick[0], rope.center_xy[1] - pick[1]) > max(15.0, 2 * cell):
+            # the nearest band is elsewhere: not what the user tapped
+            px, py = pick_xy
+            raise MonodbhError(f"{path}: no red rope found at the picked point ({px:.0f},{py:.0f})")
     tm["rope"] = 1000 * (time.perf_counter() - t)
-    if rope and rope.weak and not rope_across_trunk(rope, seg.instance, cell):
+    if weak_refused:
         x, y = rope.center_xy
         raise MonodbhError(f"{path}: no red rope found (a faint red band at ({x / sx:.0f},{y / sy:.0f}) does not "
                            f"lie across a segmented trunk; --pick X,Y to measure there)")
@@ -311,12 +331,12 @@ def _measure(path, rgb, camera, pick_xy, want_cloud, want_debug, sess: Session, 
         # the segmenter missed the roped stem: the rope band spans the visible trunk, so a
         # band along the stem as wide as the rope stands in for its mask
         tree_mask = _rope_band_mask(rope, (h, w))
-        flags_extra = ["tree_mask_from_rope"]
+        flags_extra = ["tree_mask_from_rope"] + rope_flags
     else:
         # the rope spans the visible trunk: its band fills in stem the coarse mask missed
         # (e.g. the shaded half of a trunk)
         tree_mask = seg.instance == tid
-        flags_extra = []
+        flags_extra = list(rope_flags)
     band_mask = _rope_band_mask(rope, (h, w), height_factor=1.0)
     edge_mask = tree_mask | band_mask
     ground = seg.semantic == 1
@@ -352,7 +372,7 @@ def _measure(path, rgb, camera, pick_xy, want_cloud, want_debug, sess: Session, 
                       sigma_network=sess.sigma_network, rank_network=sess.rank_network,
                       distance_calibration=sess.distance_calibration,
                       base_xy=None if base_xy is None else _to_work_pixel(base_xy, (sx, sy), cw, cam),
-                      rope_length_px=_polyline_span(rope.polyline),
+                      rope_length_px=None if rope_flags else _polyline_span(rope.polyline),
                       rope_band_mask=band_mask,
                       extra={"tree_mask_from_rope": tid == 0})
     res = measure_from_perception(perc, str(path), timings=tm)

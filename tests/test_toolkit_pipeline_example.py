@@ -1,0 +1,37 @@
+"""The whole measuring pipeline with the shipped int8 models on the bundled example photo."""
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from monodbh.calib import load_camera
+from monodbh.toolkit import pipeline as pl
+
+EX = Path(pl.__file__).resolve().parent / "examples"
+
+
+@pytest.fixture(scope="module")
+def session():
+    return pl.Session()
+
+
+def test_example_measured_within_its_sigma(session):
+    truth = json.loads((EX / "example_truth.json").read_text())["roped_tree_dbh_cm"]
+    r = pl.measure_photo(str(EX / "example.jpg"), load_camera(EX / "cam.yaml"), session=session)
+    assert r.error is None, r.error
+    assert 5 < r.dbh_cm < 80 and r.dbh_sigma_cm > 0
+    assert abs(r.dbh_cm - truth) <= 2.5 * r.dbh_sigma_cm
+    assert r.scale_source and r.distance_m > 0
+
+
+def test_pick_away_from_the_rope_is_an_error_not_another_band(session):
+    """A tap where there is no rope must not silently measure some band elsewhere."""
+    cam = load_camera(EX / "cam.yaml")
+    ok = pl.measure_photo(str(EX / "example.jpg"), cam, session=session)
+    x, y = ok.rope_xy
+    far = pl.measure_photo(str(EX / "example.jpg"), cam, session=session, pick_xy=(x, max(5.0, y - 300)))
+    assert far.dbh_cm is None and "no red rope found at the picked point" in far.error
+    # a tap on the rope measures the same tree
+    r = pl.measure_photo(str(EX / "example.jpg"), cam, session=session, pick_xy=(x + 2, y + 1))
+    assert r.error is None and np.isclose(r.dbh_cm, ok.dbh_cm, rtol=0.05)

@@ -1,0 +1,98 @@
+"""Mask-guided rope search (monodbh.toolkit.rope_stem) on painted trunks with sub-pixel ropes."""
+import cv2
+import numpy as np
+import pytest
+
+from monodbh.toolkit.rope import detect_rope
+from monodbh.toolkit.rope_stem import detect_rope_on_stems, stem_bands, trunk_like
+
+
+def _scene(seed=0, rope_width=0.6, rope_row=300, color=(170, 25, 25), W=640, H=480):
+    """A bark-textured trunk 40 px wide on a leafy background; a thin red ring at ``rope_row``.
+
+    Returns the JPEG'd image (H, W, 3) uint8, the instance mask (H, W) int (trunk = 1, one
+    segmenter cell wider than the trunk) and the rope's middle (x, y).
+    """
+    rng = np.random.default_rng(seed)
+    img = np.empty((H, W, 3), np.float64)
+    img[:] = (70, 95, 55)
+    img += rng.normal(0, 14, (H, W, 1)) * np.array([0.8, 1.0, 0.7])
+    x0, x1 = 300, 340
+    bark = np.array([95, 85, 75]) + rng.normal(0, 10, (H, x1 - x0, 1))
+    img[:, x0:x1] = bark
+    img[:80, :] = (200, 215, 235)                                    # sky above the stand
+    yy = np.arange(H, dtype=np.float64)[:, None]
+    cover = np.clip(rope_width / 2 + 0.5 - np.abs(yy - rope_row), 0, 1) if rope_width > 0 else np.zeros((H, 1))
+    cover = np.repeat(cover, W, 1)
+    cover[:, :x0] = 0
+    cover[:, x1:] = 0
+    img = img * (1 - cover[..., None]) + np.array(color, np.float64) * cover[..., None]
+    img = np.clip(np.round(img), 0, 255).astype(np.uint8)
+    ok, buf = cv2.imencode(".jpg", np.ascontiguousarray(img[:, :, ::-1]), [cv2.IMWRITE_JPEG_QUALITY, 90])
+    img = cv2.imdecode(buf, cv2.IMREAD_COLOR)[:, :, ::-1].copy()
+    inst = np.zeros((H, W), np.int32)
+    inst[80:470, x0 - 2:x1 + 2] = 1
+    return img, inst, (0.5 * (x0 + x1), float(rope_row))
+
+
+def test_input_checks():
+    img, inst, _ = _scene()
+    with pytest.raises(ValueError, match="uint8"):
+        stem_bands(img.astype(np.float32), inst)
+    with pytest.raises(ValueError, match="does not match"):
+        stem_bands(img, inst[:-1])
+
+
+def test_sub_pixel_rope_found_on_the_stem():
+    img, inst, (cx, cy) = _scene(rope_width=0.6)
+    det = detect_rope_on_stems(img, inst)
+    assert det, det.reason
+    assert abs(det.center_xy[1] - cy) <= 1.5 and abs(det.center_xy[0] - cx) <= 5
+    assert det.polyline.shape == (2, 2) and det.mask.any()
+    b = stem_bands(img, inst)[0]
+    assert b.tree_id == 1 and trunk_like(b) and 38 <= b.width_px <= 46
+
+
+def test_no_rope_not_found():
+    img, inst, _ = _scene(rope_width=0.0)
+    det = detect_rope_on_stems(img, inst)
+    assert not det and "no red rope" in det.reason
+
+
+def test_grey_band_is_not_a_rope():
+    """A bark ring as dark as a rope but not red (a shadow line, a crack) does not count."""
+    img, inst, _ = _scene(rope_width=1.0, color=(40, 40, 40))
+    assert not detect_rope_on_stems(img, inst)
+
+
+def test_crown_branches_are_not_trunk_like():
+    """The same red row crossing an instance in several pieces (a crown's branches) is refused."""
+    img, inst, (cx, cy) = _scene(rope_width=1.0)
+    inst[int(cy) - 8:int(cy) + 9, 310:316] = 0                       # the mask splits around the row
+    inst[int(cy) - 8:int(cy) + 9, 324:330] = 0
+    bands = [b for b in stem_bands(img, inst) if abs(b.center_xy[1] - cy) <= 1.5]
+    assert bands and not any(trunk_like(b) for b in bands)
+    assert not detect_rope_on_stems(img, inst)
+
+
+def test_pick_finds_a_faint_rope_at_the_tap():
+    """A hazy rope a third of a pixel thick: the line detector misses it, the stem search does
+    not take it unasked, but finds it where the user taps; a tap elsewhere finds nothing."""
+    img, inst, (cx, cy) = _scene(seed=0, rope_width=0.3, color=(130, 60, 55))
+    assert not detect_rope(img)
+    assert not detect_rope_on_stems(img, inst)
+    det = detect_rope_on_stems(img, inst, pick_xy=(cx + 6, cy + 3))
+    assert det, det.reason
+    assert abs(det.center_xy[1] - cy) <= 1.5
+    assert not detect_rope_on_stems(img, inst, pick_xy=(cx, cy - 60))
+    assert not detect_rope_on_stems(img, inst, pick_xy=(100, cy))      # no stem there
+
+
+def test_band_detector_evidence_is_used():
+    """A band the line detector saw at the same place raises the stem band's score."""
+    img, inst, (cx, cy) = _scene(rope_width=0.6)
+    cands = detect_rope(img, None, weak_score=-50.0).candidates
+    with_main = stem_bands(img, inst, rope_candidates=cands)[0]
+    alone = stem_bands(img, inst)[0]
+    assert with_main.features["main"] >= alone.features["main"] == 0.0
+    assert with_main.score >= alone.score
