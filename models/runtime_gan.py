@@ -264,13 +264,19 @@ class DepthPredictor(_GanPredictor):
         onnxruntime intra-op threads.
     manifest : dict, optional
         Manifest to look the shipped model up in (default ``models/manifest.json``).
+    flip_tta : bool
+        Average the log-depth codes of the photo and of its mirror image (test-time
+        augmentation; twice the network time). Measured (session 8, int8): held-out AbsRel
+        0.316 -> 0.311, delta1 0.619 -> 0.624 (seed 9500, 64 photos); benchmark DBH MAE
+        -0.24 +- 0.14 cm paired (seed 9000, 87 photos).
     """
 
     kind = "cden"
 
     def __init__(self, path: str | os.PathLike | None = None, threads: int = 2,
-                 manifest: dict[str, Any] | None = None) -> None:
+                 manifest: dict[str, Any] | None = None, flip_tta: bool = True) -> None:
         super().__init__(path, threads, manifest)
+        self.flip_tta = bool(flip_tta)
         self.size = int(self.input_shape("image")[-1])
         dc = self.extra.get("depth_code", {})
         self.d_min = float(dc.get("d_min_m", D_MIN))
@@ -312,6 +318,10 @@ class DepthPredictor(_GanPredictor):
         if tree_mask.shape[:2] != (H, W):
             raise ValueError(f"tree_mask shape {tree_mask.shape} != photo {(H, W)}")
         t = unletterbox(self.predict_code(rgb, tree_mask), W, H)
+        if self.flip_tta:
+            tf = unletterbox(self.predict_code(np.ascontiguousarray(rgb[:, ::-1]),
+                                               np.ascontiguousarray(np.asarray(tree_mask)[:, ::-1])), W, H)
+            t = 0.5 * (t + tf[:, ::-1])
         return depth_code_to_metric(t, self.fx_net(fx_px, W, H), self.size, self.d_min,
                                     self.d_max, self.f_canon_frac)
 

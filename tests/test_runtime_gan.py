@@ -94,6 +94,13 @@ def test_depth_predictor_tiny(tiny_models):
     assert np.all(d >= lo * 0.999) and np.all(d <= hi * 1.001)
     # portrait photo works too
     assert p.predict(rgb.transpose(1, 0, 2).copy(), mask.T.copy(), fx).shape == (100, 75)
+    # mirror-image averaging: the depth of a mirrored photo is the mirrored depth, and it is
+    # the mean log-depth code of the two single passes
+    assert np.allclose(p.predict(rgb[:, ::-1].copy(), mask[:, ::-1].copy(), fx), d[:, ::-1], rtol=1e-4)
+    one = DepthPredictor(tiny_models["cden"], threads=1, flip_tta=False)
+    a, b = one.predict(rgb, mask, fx), one.predict(rgb[:, ::-1].copy(), mask[:, ::-1].copy(), fx)[:, ::-1]
+    assert not np.allclose(a, b, rtol=1e-3)
+    assert np.allclose(d, np.sqrt(a * b), rtol=1e-3)         # the code is linear in log depth
 
 
 def test_tree_predictor_tiny(tiny_models):

@@ -43,6 +43,13 @@ def test_session_uses_error_model_only_for_its_models(tmp_path):
     (tmp_path / "manifest.json").write_text(json.dumps(man))
     s = Session(tmp_path)
     assert s.sigma_network is None and s.error_model_stale
+    # measured with the depth network run differently (no mirror-image averaging): stale too
+    write_manifest_error_model(sig, "data/calset", 42, tmp_path / "manifest.json")
+    man = json.loads((tmp_path / "manifest.json").read_text())
+    assert man["error_model"]["depth_flip_tta"] is True
+    man["error_model"]["depth_flip_tta"] = False
+    (tmp_path / "manifest.json").write_text(json.dumps(man))
+    assert Session(tmp_path).error_model_stale
 
 
 def test_distance_calibration_fit_recovers_a_shrinkage():

@@ -243,11 +243,12 @@ def distance_calibration_fit(rows: list[dict], min_n: int = 20) -> dict | None:
 def write_manifest_error_model(sigma: dict, folder: str, n: int, manifest_path: str | Path | None = None,
                                rank: dict | None = None, distance_calibration: dict | None = None) -> Path:
     """Store ``sigma`` (and ``rank``, see :func:`rank_table`) as ``manifest["error_model"]`` for the
-    models shipped now (their sha256)."""
+    models shipped now (their sha256) as the pipeline runs them (``depth_flip_tta``)."""
     import datetime as dt
 
     from monodbh.models.runtime import MANIFEST_PATH
     from monodbh.toolkit.batch import atomic_write_text
+    from monodbh.toolkit.pipeline import DEPTH_FLIP_TTA
 
     p = Path(manifest_path) if manifest_path else Path(MANIFEST_PATH)
     man = json.loads(p.read_text())
@@ -258,6 +259,7 @@ def write_manifest_error_model(sigma: dict, folder: str, n: int, manifest_path: 
         **({"distance_calibration": {k: (round(v, 4) if isinstance(v, float) else v)
                                      for k, v in distance_calibration.items()}} if distance_calibration else {}),
         "models": {k: models[k].get("sha256") for k in ("segmenter", "cden", "treenet")},
+        "depth_flip_tta": bool(DEPTH_FLIP_TTA),
         "data": str(folder), "n_measured": int(n),
         "computed_at": dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
         "method": "per source: max(median|ln err| / 0.674, q90|ln err| / 1.645)",

@@ -15,11 +15,13 @@ from ..calib.errors import MonodbhError
 from .measure_core import Perception, measure_from_perception
 from .result import MeasureResult, PointCloud
 
-__all__ = ["Session", "fresh_error_model", "measure_photo", "reconstruct_photo", "WORK_LONG_SIDE_PX", "unproject_depth",
+__all__ = ["Session", "fresh_error_model", "measure_photo", "reconstruct_photo", "WORK_LONG_SIDE_PX", "DEPTH_FLIP_TTA", "unproject_depth",
            "rope_across_trunk", "ROPE_WEAK_SCORE"]
 
 #: Photos are processed at this long side (pixels); edges are located to sub-pixel precision.
 WORK_LONG_SIDE_PX = 1600
+#: the depth network sees the photo and its mirror image (see :class:`~monodbh.models.runtime_gan.DepthPredictor`)
+DEPTH_FLIP_TTA = True
 
 
 class Session:
@@ -54,7 +56,7 @@ class Session:
                 raise MonodbhError(f"{p}: model file missing")
             return p
         self.segmenter = Segmenter(path_of("segmenter"), threads=threads, manifest=manifest)
-        self.depth = DepthPredictor(str(path_of("cden")), threads=threads)
+        self.depth = DepthPredictor(str(path_of("cden")), threads=threads, flip_tta=DEPTH_FLIP_TTA)
         self.trees = TreePredictor(str(path_of("treenet")), threads=threads)
         self.models_dir = mdir
         # the error model measured for exactly these networks (python -m monodbh.toolkit.error_model
@@ -69,11 +71,14 @@ class Session:
 
 def fresh_error_model(manifest: dict) -> dict:
     """``manifest["error_model"]`` when it was measured for exactly the shipped networks (their
-    sha256), else ``{}`` (stale after retraining, or never measured)."""
+    sha256) run as now (:data:`DEPTH_FLIP_TTA`), else ``{}`` (stale after retraining, or never
+    measured)."""
     em = manifest.get("error_model") or {}
     models = manifest.get("models", manifest)
     shipped = {k: (models.get(k) or {}).get("sha256") for k in ("segmenter", "cden", "treenet")}
-    return em if em.get("sigma") is not None and em.get("models") == shipped else {}
+    fresh = (em.get("sigma") is not None and em.get("models") == shipped
+             and bool(em.get("depth_flip_tta", False)) == DEPTH_FLIP_TTA)
+    return em if fresh else {}
 
 
 def _work_image(rgb: np.ndarray, camera):
