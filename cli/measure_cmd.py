@@ -120,8 +120,20 @@ def _table(results, console) -> None:
                                                            for s in ("stem_base", "pose"))]
     if weak:
         console.print(Text(f"{len(weak)} of {len(results)} measured without the stem base: their scale "
-                           "comes from the depth network (about 18 % off, median). Where the stem base is in "
+                           f"comes from the depth network{_network_error_text()}. Where the stem base is in "
                            "the photo, tap it: dbh measure PHOTO --calib CAM --base X,Y", style="dim"))
+
+
+def _network_error_text() -> str:
+    """`` (about N % off, median)`` from the shipped error model's calibrated distances, or ``""``."""
+    try:
+        from monodbh.models.runtime import MANIFEST_PATH, load_manifest
+        from monodbh.toolkit.pipeline import fresh_error_model
+        dc = fresh_error_model(load_manifest(MANIFEST_PATH)).get("distance_calibration") or {}
+        m = float(dc["median_abs_ln_after"])
+    except Exception:          # no manifest, no error model: the advice stands without a figure
+        return ""
+    return f" (about {100 * (math.exp(m) - 1):.0f} % off, median)"
 
 
 def measure(
@@ -137,8 +149,9 @@ def measure(
                                            show_default=False),
     workers: int = typer.Option(1, "--workers", "-j", min=1, help="Processes measuring in parallel "
                                 "(each loads the models once)."),
-    pick: Optional[str] = typer.Option(None, "--pick", metavar="X,Y", help="Pixel on the roped tree "
-                                       "(when several trees carry a rope).", show_default=False),
+    pick: Optional[str] = typer.Option(None, "--pick", metavar="X,Y", help="Pixel on the rope: chooses "
+                                       "among several roped trees, or finds a rope too faint to be found "
+                                       "unasked (a tap where there is no rope is an error).", show_default=False),
     base: Optional[str] = typer.Option(None, "--base", metavar="X,Y", help="Pixel where the roped stem "
                                        "meets the ground (front, middle), one photo only: sets the "
                                        "scale from the rope-to-base geometry (about 10x more accurate "
