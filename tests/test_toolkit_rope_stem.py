@@ -120,3 +120,15 @@ def test_real_rope_free_photos_give_no_stem_rope():
         if detect_rope_on_stems(rgb, inst, rope_candidates=cands):
             found.append(os.path.basename(p))
     assert not found, found
+
+
+def test_fit_logistic_separates_a_feature():
+    """The weights fitter (toolkit.fit_rope_stem) finds the informative feature and its sign."""
+    from monodbh.toolkit.fit_rope_stem import fit_logistic
+    rng = np.random.default_rng(0)
+    rows = []
+    for _ in range(400):
+        lab = int(rng.random() < 0.2)
+        rows.append(dict(label=lab, a=rng.normal(2.0 if lab else 0.0, 1.0), b=rng.normal(0.0, 1.0)))
+    w = fit_logistic(rows, keys=("a", "b"))
+    assert w["a"] > 1.0 and abs(w["b"]) < 0.5 and w["bias"] < -1.0

@@ -9,11 +9,13 @@ mean red-ness of the instance's pixels is taken per sheared row ``v = y - tan(ti
 a rope is a row whose mean is above both of its neighbourhoods (2-6 rows above and below).
 
 Each stem's best rows are described by features (:func:`band_features`): the contrast, its
-significance against the pixel noise and against the stem's own profile, whether all three
-thirds of the trunk's width see it (a rope spans the trunk; a red leaf or a paint mark does
-not), and the trunk width. :data:`STEM_WEIGHTS` turns them into a log-odds score, fitted on the
-calibration sets (seeds 9100 and 9200) and measured on the benchmark (seed 9000) and on the 24
-real rope-free photos (see ``docs/STATUS.md``, session 8).
+significance against the pixel noise and against the stem's own rows, the trunk width, the
+stem's next best row, whether the row's colour shift points towards red (not along the bark's
+own colour, not orange), its height above the stem's lowest pixel in trunk widths, and any
+faint band the line detector saw there. :data:`STEM_WEIGHTS` turns them into a log-odds score
+(a logistic fit on the calibration sets, seeds 9100 and 9200); :func:`trunk_like` requires the
+row to cross a trunk, not a crown. Measured on the benchmark (seed 9000) and on the 24 real
+rope-free photos: see ``docs/STATUS.md``, session 8.
 
 Examples
 --------
@@ -74,14 +76,13 @@ def _window_mean(vals: np.ndarray, ok: np.ndarray, lo: int, hi: int):
     return np.where(n >= 3, m, np.nan)
 
 
-def band_features(f: np.ndarray, xs: np.ndarray, v: np.ndarray, i: int, c: np.ndarray, zpix: np.ndarray,
+def band_features(xs: np.ndarray, v: np.ndarray, i: int, c: np.ndarray, zpix: np.ndarray,
                   ok: np.ndarray, rgbs: np.ndarray | None = None, ys: np.ndarray | None = None) -> dict:
     """Features of the band at sheared row ``i`` of one stem.
 
     Parameters
     ----------
-    f : (N,) red-ness of the stem's pixels.
-    xs : (N,) their x.
+    xs : (N,) x of the stem's pixels.
     v : (N,) their sheared row index (0-based).
     i : the band's row.
     c : (L,) contrast per row; zpix : (L,) its significance against the pixel noise; ok : (L,)
@@ -90,12 +91,12 @@ def band_features(f: np.ndarray, xs: np.ndarray, v: np.ndarray, i: int, c: np.nd
     Returns
     -------
     dict with ``log_contrast``, ``log_zpix``, ``log_zprof`` (against the stem's own rows: how
-    unusual this row is on this stem), ``thirds`` (the smallest of the three thirds' contrasts
-    over the whole row's), ``log_width``, ``second`` (the stem's next best significance elsewhere
-    over this one); with ``rgbs``: ``red_shift`` (cosine of the row's colour change with the
-    direction towards red), ``orange`` (its G - B share), ``log_height`` (log of the height above
-    the stem's lowest pixel in trunk widths) and its hinges ``h_lo`` (below 2 widths) and ``h_hi``
-    (above 7.4 widths).
+    unusual this row is on this stem), ``log_width``, ``second`` (the stem's next best
+    significance elsewhere over this one), ``runs`` and ``width_change`` (see :func:`trunk_like`);
+    with ``rgbs``: ``red_shift`` (cosine of the row's colour change with the direction towards
+    red), ``orange`` (the G - B share of that change), ``log_height`` (log of the height above
+    the stem's lowest pixel in trunk widths) and its hinges ``h_lo`` (below 2 widths) and
+    ``h_hi`` (above 7.4 widths).
     """
     cc = c[ok & np.isfinite(c)]
     med = float(np.median(cc)) if cc.size else 0.0
@@ -103,18 +104,7 @@ def band_features(f: np.ndarray, xs: np.ndarray, v: np.ndarray, i: int, c: np.nd
     zprof = (c[i] - med) / (mad + 0.002)
     row = v == i
     x0, x1 = float(xs[row].min()), float(xs[row].max())
-    third = np.clip(((xs - x0) / max(x1 - x0 + 1.0, 1.0) * 3).astype(np.int64), 0, 2)
     near = np.abs(v - i) <= 6
-    tc = []
-    for t in range(3):
-        sel = near & (third == t)
-        on = sel & row
-        up = sel & (v >= i - 6) & (v <= i - 2)
-        dn = sel & (v >= i + 2) & (v <= i + 6)
-        if on.sum() < 1 or up.sum() < 2 or dn.sum() < 2:
-            tc.append(0.0)
-            continue
-        tc.append(float(f[on].mean() - max(f[up].mean(), f[dn].mean())))
     # a trunk crosses the row in one piece, about as wide as just above and below it (branches
     # in a crown cross it in several pieces of varying width)
     xr = np.sort(xs[row])
@@ -126,7 +116,6 @@ def band_features(f: np.ndarray, xs: np.ndarray, v: np.ndarray, i: int, c: np.nd
     second = float(zo.max()) / max(float(zpix[i]), 1e-6) if zo.size else 0.0
     feats = dict(log_contrast=float(np.log(max(c[i], 1e-4))), log_zpix=float(np.log(max(zpix[i], 1e-3))),
                  log_zprof=float(np.log(np.clip(zprof, 0.1, 60))),
-                 thirds=float(np.clip(min(tc) / max(c[i], 1e-6), -1, 1.5)),
                  log_width=float(np.log(max(int(row.sum()), 1))), second=float(np.clip(second, 0, 2)),
                  runs=runs, width_change=wchg)
     if rgbs is not None:
@@ -137,7 +126,8 @@ def band_features(f: np.ndarray, xs: np.ndarray, v: np.ndarray, i: int, c: np.nd
         dlt = rgbs[row].mean(0) - bg
         d = np.array([190.0, 45.0, 35.0]) - bg
         feats["red_shift"] = float(dlt @ d / (np.linalg.norm(dlt) * np.linalg.norm(d) + 1e-6))
-        # orange (flagging tape, sand) raises G over B; a red rope mixed into bark lowers G - B
+        # the G - B share of the change: the rope's own G - B against the bark's (orange tape
+        # and sand raise it most; its fitted weight is positive: synthetic ropes have G > B)
         feats["orange"] = float((dlt[1] - dlt[2]) / (np.linalg.norm(dlt) + 1e-6))
         # the height above the stem's lowest pixel below the band, in trunk widths (the rope is
         # 1.3 m up a stem some 0.1-0.5 m wide: 2.5-13 widths when the base is seen)
@@ -149,15 +139,16 @@ def band_features(f: np.ndarray, xs: np.ndarray, v: np.ndarray, i: int, c: np.nd
     return feats
 
 
-#: logistic weights of :func:`stem_band_score` (fitted with ``runs/diag/rope_stem_fit.py``).
+#: logistic weights of :func:`stem_band_score` (``python -m monodbh.toolkit.fit_rope_stem``, session 8:
+#: calibration sets seeds 9100 + 9200, 4392 bands of which 159 on the true rope).
 STEM_WEIGHTS = {"bias": -8.57, "log_contrast": 0.637, "log_zpix": 1.043, "log_zprof": 0.427, "log_width": 1.274,
                 "second": 0.306, "red_shift": 1.023, "h_lo": -1.169, "h_hi": -1.058, "main": 0.44, "orange": 1.11}
 
 #: a stem band scoring above this (and :func:`trunk_like`) is accepted as the rope when the band
 #: detector found none. Set on the calibration sets (seeds 9100 + 9200): of their 40 roped photos
 #: where the band detector found no rope, the best trunk-like band is the rope and above -1 in
-#: 11, a wrong band above -1 in 1; on 47 rope-free photos (16 + 10 benchmark + 21 real ones with
-#: stems) only an orange flagging tape (1.0) scores above -1.67.
+#: 11, a wrong band above -1 in 2; on 47 rope-free photos (16 + 10 benchmark + 21 real ones with
+#: stems) only an orange flagging tape (1.0) scores above -1.67 (``fit_rope_stem``).
 STEM_MIN_SCORE = -1.0
 #: ... and above this one where the user tapped the rope (``--pick``), standing out of the pixel
 #: noise by 2 standard errors. Measured on the benchmark (seed 9000): a tap on each of the 23
@@ -271,7 +262,7 @@ def stem_bands(rgb: np.ndarray, instance: np.ndarray, *, tilts_deg=tuple(range(-
                 continue                                     # a row cut by the photo's edge
             if near_xy is not None and abs(yrow + tn * (near_xy[0] - xc) - near_xy[1]) > near_px:
                 continue
-            feats = band_features(f, xs, v, i, c, z, ok, rgbs, ys)
+            feats = band_features(xs, v, i, c, z, ok, rgbs, ys)
             row = v == i
             xl, xr = float(xs[row].min()), float(xs[row].max())
             feats["main"] = _main_evidence(rope_candidates, 0.5 * (xl + xr), yrow + tn * (0.5 * (xl + xr) - xc),
