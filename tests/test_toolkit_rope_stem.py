@@ -132,3 +132,13 @@ def test_fit_logistic_separates_a_feature():
         rows.append(dict(label=lab, a=rng.normal(2.0 if lab else 0.0, 1.0), b=rng.normal(0.0, 1.0)))
     w = fit_logistic(rows, keys=("a", "b"))
     assert w["a"] > 1.0 and abs(w["b"]) < 0.5 and w["bias"] < -1.0
+
+
+def test_stem_evidence_resolves_two_alike_candidates():
+    """Of two rope candidates the band detector cannot tell apart, the one on a stem with a
+    rope-like row wins; two such candidates stay unresolved."""
+    from monodbh.toolkit.rope_stem import stem_evidence_choice
+    img, inst, (cx, cy) = _scene(rope_width=0.6)
+    assert stem_evidence_choice(img, inst, [(100.0, cy), (cx, cy)]) == 1       # off any stem / the rope
+    assert stem_evidence_choice(img, inst, [(cx, cy), (cx, cy - 80)]) == 0     # the rope / bare bark
+    assert stem_evidence_choice(img, inst, [(cx, cy), (cx + 3, cy)]) is None   # both on the rope

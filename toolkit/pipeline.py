@@ -304,6 +304,12 @@ def _measure(path, rgb, camera, pick_xy, want_cloud, want_debug, sess: Session, 
         on = [c for c in top if rope_across_trunk(c, seg.instance, cell)]
         if len(on) == 1:
             rope = detect_rope(img, None, pick_xy=on[0].center_xy)
+        else:
+            # ... or when exactly one of them sits on a stem with a rope-like red row there
+            from .rope_stem import stem_evidence_choice
+            k = stem_evidence_choice(img, seg.instance, [c.center_xy for c in top], rope_candidates=rope.candidates)
+            if k is not None:
+                rope = detect_rope(img, None, pick_xy=top[k].center_xy)
     weak_refused = bool(rope) and rope.weak and not rope_across_trunk(rope, seg.instance, cell)
     rope_flags = []
     # at a user's tap, the band detector's nearest candidate is kept when it is near the tap and

@@ -31,7 +31,7 @@ import numpy as np
 
 from .rope import RopeCandidate, RopeDetection, redness_map
 
-__all__ = ["StemBand", "stem_bands", "trunk_like", "band_features", "stem_band_score", "detect_rope_on_stems",
+__all__ = ["StemBand", "stem_bands", "trunk_like", "stem_evidence_choice", "band_features", "stem_band_score", "detect_rope_on_stems",
            "STEM_WEIGHTS", "STEM_MIN_SCORE", "STEM_PICK_MIN_SCORE"]
 
 
@@ -315,6 +315,35 @@ def _main_evidence(cands, x: float, y: float, width: int) -> float:
         if abs(c.center_xy[1] - y) < 6 + c.thickness_px and abs(c.center_xy[0] - x) < max(10, width):
             best = c.score if best is None else max(best, c.score)
     return 0.0 if best is None else float(np.clip(best, -6, 4)) + 6.0
+
+
+def stem_evidence_choice(rgb: np.ndarray, instance: np.ndarray, points, *, rope_candidates=None,
+                         min_score: float = STEM_MIN_SCORE, margin: float = 2.0) -> int | None:
+    """Which of several rope candidates lies on a stem with a rope-like band there, if just one.
+
+    For each point (x, y) the best trunk-like stem band within a few rows of it is scored
+    (:func:`stem_bands` with ``near_xy``). Returns the index of the one point whose band scores
+    above ``min_score`` while every other scores below ``min_score - margin`` (or has none),
+    else None. The pipeline uses it when the band detector finds two ropes alike. Measured
+    (session 8): of the 280 calibration and benchmark photos, 2 were ambiguous; in both, the
+    true rope's band scored 1.5-1.6 and the rival's -3.7 or had none.
+
+    Parameters
+    ----------
+    rgb : (H, W, 3) uint8; instance : (H, W) int tree instance ids.
+    points : sequence of (x, y) candidate centres.
+    """
+    scores = []
+    for xy in points:
+        bands = [b for b in stem_bands(rgb, instance, near_xy=tuple(map(float, xy)), rope_candidates=rope_candidates)
+                 if trunk_like(b)]
+        scores.append(max((b.score for b in bands), default=-np.inf))
+    good = [i for i, sc in enumerate(scores) if sc > min_score]
+    if len(good) != 1:
+        return None
+    if any(sc >= min_score - margin for i, sc in enumerate(scores) if i != good[0]):
+        return None
+    return good[0]
 
 
 def detect_rope_on_stems(rgb: np.ndarray, instance: np.ndarray, *, pick_xy=None, rope_candidates=None,
