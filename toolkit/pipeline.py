@@ -314,10 +314,10 @@ def _measure(path, rgb, camera, pick_xy, want_cloud, want_debug, sess: Session, 
     rope_flags = []
     # at a user's tap, the band detector's nearest candidate is kept when it is near the tap and
     # rope-like; else the rope is searched on the tapped stem
-    far_from_pick = (pick is not None and bool(rope)
-                     and (np.hypot(rope.center_xy[0] - pick[0], rope.center_xy[1] - pick[1]) > max(15.0, 2 * cell)
-                          or rope.score < ROPE_WEAK_SCORE))
-    if (not rope and not rope.ambiguous) or weak_refused or far_from_pick or (not rope and pick is not None):
+    off_pick = (pick is not None and bool(rope)
+                and np.hypot(rope.center_xy[0] - pick[0], rope.center_xy[1] - pick[1]) > max(15.0, 2 * cell))
+    if ((not rope and not rope.ambiguous) or weak_refused
+            or (pick is not None and (not rope or off_pick or rope.score < ROPE_WEAK_SCORE))):
         # a rope thinner than a pixel is no connected line: its red-ness averaged across the
         # segmented trunk's width still stands out (mask-guided search, toolkit/rope_stem.py)
         from .rope_stem import detect_rope_on_stems
@@ -325,8 +325,7 @@ def _measure(path, rgb, camera, pick_xy, want_cloud, want_debug, sess: Session, 
         if alt:
             rope, weak_refused = alt, False
             rope_flags.append("rope_from_stem_profile")
-        elif pick is not None and bool(rope) and np.hypot(
-                rope.center_xy[0] - pick[0], rope.center_xy[1] - pick[1]) > max(15.0, 2 * cell):
+        elif off_pick:
             # the nearest band is elsewhere: not what the user tapped
             px, py = pick_xy
             raise MonodbhError(f"{path}: no red rope found at the picked point ({px:.0f},{py:.0f})")
