@@ -151,3 +151,75 @@ def test_stem_hidden_by_a_bush_caps_a_too_far_network_scale():
     assert r2.dbh_cm == pytest.approx(r1.dbh_cm)
     assert r2.dbh_sigma_cm / r2.dbh_cm < r1.dbh_sigma_cm / r1.dbh_cm
     assert r2.dbh_sigma_cm / r2.dbh_cm == pytest.approx(0.2, abs=0.05)
+
+
+def _roped_pair(rope_to: float, shade_from: float | None = None, W=480, H=400):
+    """Grey background, the roped stem (x 200..260, brown bark) and a lighter neighbouring trunk
+    behind it (x 260..330); a red rope (rows 198..202) painted from x 200 to ``rope_to``; with
+    ``shade_from``, the roped stem (and its rope) darker from there on. Returns rgb (H, W, 3)
+    uint8 and the coarse mask the segmenter gives for both trunks together."""
+    rng = np.random.default_rng(1)
+    rgb = np.zeros((H, W, 3), np.float32)
+    rgb[:] = (150, 160, 170)
+    rgb[:, 260:330] = (175, 165, 140)
+    rgb[:, 200:260] = (90, 70, 55)
+    rgb[198:203, 200:int(rope_to)] = (170, 30, 25)
+    if shade_from is not None:
+        rgb[:, int(shade_from):260] *= 0.55
+    rgb = np.clip(rgb + rng.normal(0, 2.0, rgb.shape), 0, 255).astype(np.uint8)
+    mask = np.zeros((H, W), bool)
+    mask[:, 198:332] = True
+    return rgb, mask
+
+
+def _perception(rgb, mask, band_x0, band_x1):
+    from monodbh.toolkit.measure_core import Perception
+    band = np.zeros(mask.shape, bool)
+    L = band_x1 - band_x0
+    band[200 - L:200 + L + 1, band_x0:band_x1] = True      # as the pipeline's: the rope's length above and below
+    return Perception(rgb=rgb, camera=None, rope_xy=np.array([0.5 * (band_x0 + band_x1), 200.0]),
+                      rope_dir=np.array([1.0, 0.0]), rope_half_px=2.5, tree_mask=mask,
+                      ground_mask=np.zeros_like(mask), edge_search_px=6.0, rope_band_mask=band,
+                      rope_length_px=float(band_x1 - band_x0))
+
+
+def test_rope_row_contrast_is_high_on_the_rope_only():
+    from monodbh.toolkit.edges import rope_row_contrast
+    from monodbh.toolkit.rope import redness_map
+    rgb, _ = _roped_pair(rope_to=260)
+    F = redness_map(rgb)
+    s = np.arange(-100.0, 100.0, 1.0)          # from x 130 to 330 across the rope at (230, 200)
+    c = rope_row_contrast(F, (230.0, 200.0), (1.0, 0.0), (1.0, 0.0), (0.0, 1.0), s, rope_half_px=2.5)
+    on_rope = (s > -25) & (s < 25)
+    on_neighbour = (s > 35) & (s < 95)
+    assert c[on_rope].min() > 0.2
+    assert np.abs(c[on_neighbour]).max() < 0.02
+
+
+def test_merged_neighbour_is_cut_at_the_rope_end():
+    # the mask took in the neighbouring trunk on the right: the rope ends at the roped stem's
+    # edge, so that side's edge is searched there; the left side stays
+    from monodbh.toolkit.measure_core import _edges_checked_by_rope, _edges_two_pass
+    rgb, mask = _roped_pair(rope_to=260)
+    perc = _perception(rgb, mask, 201, 259)
+    gray = rgb.astype(np.float32).mean(2)
+    e1 = _edges_two_pass(gray, mask, perc)
+    assert e1 and e1.right_xy[0] > 320          # the mask-guided pair spans both trunks
+    e, n = _edges_checked_by_rope(gray, perc, e1)
+    assert n == 1
+    assert abs(e.left_xy[0] - 199.5) < 1.0 and abs(e.right_xy[0] - 259.5) < 1.0
+    assert abs(e.width_px - 60.0) < 1.5
+
+
+def test_rope_seen_on_part_of_the_stem_keeps_the_mask_edge():
+    # the rope goes on, darker, into the stem's shade beyond where the rope band was found:
+    # the mask's edge is the stem's
+    from monodbh.toolkit.measure_core import _edges_checked_by_rope, _edges_two_pass
+    rgb, mask = _roped_pair(rope_to=260, shade_from=235)
+    mask[:, 262:] = False                       # the mask is the roped stem's only
+    perc = _perception(rgb, mask, 201, 235)
+    gray = rgb.astype(np.float32).mean(2)
+    e1 = _edges_two_pass(gray, mask, perc)
+    e, n = _edges_checked_by_rope(gray, perc, e1)
+    assert n == 0
+    assert abs(e.right_xy[0] - 259.5) < 1.0

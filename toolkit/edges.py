@@ -12,7 +12,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["TrunkEdges", "trunk_edges", "trace_stem_base", "track_stem_base", "REASON_OUT_OF_PHOTO"]
+__all__ = ["TrunkEdges", "trunk_edges", "trace_stem_base", "track_stem_base", "rope_row_contrast", "combine_edges",
+           "REASON_OUT_OF_PHOTO"]
 
 #: :attr:`TrunkEdges.reason` when a side of the stem lies outside the photo at the rope
 REASON_OUT_OF_PHOTO = ("the stem runs out of the photo at the rope (step back or re-frame so that both "
@@ -187,6 +188,73 @@ def trunk_edges(gray: np.ndarray, tree_mask: np.ndarray, center_xy, across_dir, 
                       edge_rms_px=float(max(rms_l, rms_r)), n_lines=int(min(kl.sum(), kr.sum())),
                       points=dict(left=np.array([c + t * a + s_ * u for t, s_, _ in L[kl]]),
                                   right=np.array([c + t * a + s_ * u for t, s_, _ in R[kr]])))
+
+
+def rope_row_contrast(redness: np.ndarray, center_xy, rope_dir, across, along, s: np.ndarray, *,
+                      rope_half_px: float, sag_px: float = 0.0) -> np.ndarray:
+    """Red-ness of the rope's row minus that of the rows beside it, at positions across the stem.
+
+    The rope's centre line is the straight line through ``center_xy`` along ``rope_dir``; the
+    position ``s`` is measured along ``across`` (the direction of the stem's cross-section).
+    Where the rope is, its row is redder than the rows ``3-6`` rope half-thicknesses above and
+    below; where the stem carries no rope (e.g. a neighbouring trunk the segmenter merged in),
+    the two are alike.
+
+    Parameters
+    ----------
+    redness : (H, W) float32 red-ness map (:func:`monodbh.toolkit.rope.redness_map`).
+    center_xy : (2,) rope centre (pixels); rope_dir : (2,) rope direction.
+    across, along : (2,) unit directions across and along the stem.
+    s : (N,) positions along ``across`` from ``center_xy`` (pixels).
+    rope_half_px : half thickness of the rope (pixels).
+    sag_px : how far the rope may bend away from the straight line (pixels; a rope seen from
+        above or below is an arc).
+
+    Returns
+    -------
+    (N,) float32: per position, the largest red-ness within the rope's rows minus the median
+    red-ness of the reference rows.
+
+    Examples
+    --------
+    >>> c = rope_row_contrast(F, (320, 240), (1, 0), (1, 0), (0, 1), np.arange(-10, 10.0),
+    ...                       rope_half_px=1.5)        # doctest: +SKIP
+    """
+    d = np.asarray(rope_dir, np.float64)
+    d = d / np.linalg.norm(d)
+    u = np.asarray(across, np.float64)
+    a = np.asarray(along, np.float64)
+    if d @ u < 0:
+        d = -d
+    s = np.asarray(s, np.float64)
+    base = np.asarray(center_xy, np.float64)[None] + (s / max(float(d @ u), 0.3))[:, None] * d[None]
+    h = max(0.5, float(rope_half_px))
+    reach = 1.5 * h + 1.0 + sag_px
+    t_in = np.arange(-reach, reach + 1e-6, 0.5)
+    t_ref = np.arange(3 * h + 2 + sag_px, 6 * h + 4 + sag_px, 1.0)
+    t_ref = np.r_[-t_ref, t_ref]
+
+    def rows(ts):
+        P = base[:, None, :] + ts[None, :, None] * a[None, None, :]
+        return _sample(redness, P[..., 0], P[..., 1])
+
+    return (rows(t_in).max(1) - np.median(rows(t_ref), 1)).astype(np.float32)
+
+
+def combine_edges(left: TrunkEdges, right: TrunkEdges, frame: TrunkEdges | None = None) -> TrunkEdges:
+    """Edges with the left side of ``left`` and the right side of ``right``, both found at the
+    same rope; the stem and cross-section directions are ``frame``'s (default ``left``'s).
+
+    Returns
+    -------
+    TrunkEdges
+    """
+    frame = frame or left
+    u = frame.across
+    width = float((right.right_xy - left.left_xy) @ u)
+    return TrunkEdges(left_xy=left.left_xy, right_xy=right.right_xy, width_px=width, along=frame.along, across=u,
+                      edge_rms_px=max(left.edge_rms_px, right.edge_rms_px), n_lines=min(left.n_lines, right.n_lines),
+                      points=dict(left=left.points.get("left"), right=right.points.get("right")))
 
 
 def trace_stem_base(tree_mask: np.ndarray, ground_mask: np.ndarray, start_xy, along, width_px: float,
