@@ -224,6 +224,8 @@ def evaluate(
                                   "base pixel plus Gaussian noise of --tap-noise-px."),
     tap_noise_px: float = typer.Option(3.0, "--tap-noise-px", min=0.0, help="1-sigma of the simulated "
                                        "tap, in pixels per axis (seeded per sample)."),
+    rope_known: bool = typer.Option(False, "--rope-known", help="Simulate a user who gives the rope's "
+                                    "diameter (dbh measure --rope-mm): each sample's true rope diameter."),
     workers: int = typer.Option(1, "--workers", "-j", min=1, help="Processes measuring in parallel."),
     out_dir: Optional[Path] = typer.Option(None, "--out-dir", help="Write overlays (and tree PLYs) here.",
                                            show_default=False),
@@ -262,8 +264,9 @@ def evaluate(
             raise fail(f"{stem.with_suffix('.json')}: bad sample record ({type(exc).__name__}: {exc})")
         metas.append((i, gt))
         base_xy = _simulated_tap(stem, meta, tap_noise_px, i) if tap_base else None
+        rope_m = (meta.get("rope") or {}).get("tube_diameter_m") if rope_known else None
         jobs.append(Job(n, str(stem.with_suffix(".jpg")), cam, gt=(str(folder), i) if gt_perception else None,
-                        base_xy=base_xy, out_dir=str(out_dir) if out_dir else None))
+                        base_xy=base_xy, rope_diameter_m=rope_m, out_dir=str(out_dir) if out_dir else None))
     backend = make_backend(measure_fn, session_factory, models_dir)
     if gt_perception:  # ground-truth perception needs no networks: run without models too
         import dataclasses
@@ -300,6 +303,7 @@ def evaluate(
         report = {"folder": str(folder), "gt_perception": gt_perception, "interrupted": interrupted,
                   "tap_base": ({"noise_px": tap_noise_px, "tapped": sum(j.base_xy is not None for j in jobs)}
                                if tap_base else None),
+                  "rope_known": rope_known,
                   "metrics": m, "timings_ms": stages, "samples": records}
         atomic_write_text(json_out, json.dumps(report, indent=1, ensure_ascii=False) + "\n")
         err_console.print(f"report: {json_out}", highlight=False)

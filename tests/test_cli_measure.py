@@ -24,7 +24,8 @@ class Session:
         self.models_dir = models_dir
 
 
-def fake_measure(path, camera, *, pick_xy=None, want_cloud=False, want_debug=False, session=None, base_xy=None):
+def fake_measure(path, camera, *, pick_xy=None, want_cloud=False, want_debug=False, session=None, base_xy=None,
+                 rope_diameter_m=None):
     """Stand-in for toolkit.pipeline.measure_photo: black photo -> no rope; 'boom' -> crash."""
     assert isinstance(session, Session)
     if CSV_WATCH.get("path"):
@@ -43,6 +44,8 @@ def fake_measure(path, camera, *, pick_xy=None, want_cloud=False, want_debug=Fal
                         estimates_cm={"circle": 30.1}, rope_xy=list(pick_xy or (w / 2, h / 2)), tree_id=1)
     if base_xy is not None:
         res.flags.append(f"base_{base_xy[0]:g}_{base_xy[1]:g}")
+    if rope_diameter_m is not None:
+        res.flags.append(f"rope_{rope_diameter_m:g}")
     if want_debug:
         t = np.linspace(np.pi, 2 * np.pi, 30)
         res.debug.update(image=img[::2, ::2], image_scale=0.5, rope_polyline=[[5, 15], [25, 16], [40, 15]],
@@ -144,6 +147,14 @@ def test_base_reaches_the_measure_function(files):
     r = run([files["good"][0], "--calib", files["cam"], "--base", "10,20.5", "--json"])
     assert r.exit_code == 0, r.output
     assert "base_10_20.5" in json_lines(r.stdout)[0]["flags"]
+
+
+def test_rope_diameter_reaches_the_measure_function_in_metres(files):
+    r = run([*files["good"], "--calib", files["cam"], "--rope-mm", "8", "--json"])
+    assert r.exit_code == 0, r.output
+    assert all("rope_0.008" in row["flags"] for row in json_lines(r.stdout))
+    r = run([files["good"][0], "--calib", files["cam"], "--rope-mm", "0.1"])
+    assert r.exit_code == 2 and "--rope-mm" in r.output
 
 
 def test_bad_calib_is_one_line_error(files):

@@ -213,3 +213,31 @@ def test_circle_only_checks_the_tangent_estimate_when_the_scale_is_precise():
         done += 1
         break
     assert done == 1
+
+
+def test_rope_of_known_diameter_sets_the_scale():
+    """``--rope-mm``: a rope seen 8 px thick (its true angular thickness, as the detector reads
+    it) sets the distance, with the depth map 1.7x too far; too thin or too faint a rope is
+    flagged and left out."""
+    from monodbh.toolkit import measure_core as mc
+
+    for s, p in _roped_scenes(21, 12):
+        m = s["meta"]
+        gt = m["trees"][m["roped_tree"] - 1]
+        z_front = gt["bh_point_cam"][2] - gt["r_bh_m"]
+        D = 8.0 * z_front / float(m["K"][1][1])          # the rope diameter that is 8 px at the stem's front
+        p.rope_diameter_m = D
+        p.rope_thickness_px = 8.0 * mc.ROPE_RULER_FWHM_RATIO
+        p.rope_contrast = 0.2
+        r = mc.measure_from_perception(p)
+        if r.error:
+            continue
+        assert r.scale_source.startswith("rope_diameter"), r.scale_source
+        assert r.distance_m == pytest.approx(gt["distance_m"], rel=0.05)
+        p.rope_contrast = 0.05
+        r_faint = mc.measure_from_perception(p)
+        assert "rope_too_faint_for_scale" in r_faint.flags and "rope_diameter" not in r_faint.scale_source
+        p.rope_contrast, p.rope_thickness_px = 0.2, 3.0
+        assert "rope_too_thin_for_scale" in mc.measure_from_perception(p).flags
+        return
+    pytest.fail("no measurable roped scene")

@@ -287,3 +287,25 @@ def test_overlapping_bands_are_one_rope_not_rivals():
     assert _overlapping(a, b) and _overlapping(b, a)
     assert not _overlapping(a, far)
     assert not _overlapping(a, side)        # the next trunk's rope at the same height
+
+
+def _band_photo(thickness_px: float, red=(170, 35, 30), bark=(95, 75, 60), W=200, H=120, noise=2.0):
+    """A horizontal red band (anti-aliased, rows 60 +- thickness/2) across brown bark."""
+    rng = np.random.default_rng(3)
+    y = np.arange(H, dtype=np.float64)[:, None]
+    cover = np.clip(np.minimum(y - (60 - thickness_px / 2), (60 + thickness_px / 2) - y) + 0.5, 0, 1)
+    rgb = np.asarray(bark, np.float64) * (1 - cover[..., None]) + np.asarray(red, np.float64) * cover[..., None]
+    rgb = np.broadcast_to(rgb, (H, W, 3)) + rng.normal(0, noise, (H, W, 3))
+    return np.clip(rgb, 0, 255).astype(np.uint8)
+
+
+def test_rope_profile_fwhm_measures_the_band_thickness():
+    from monodbh.toolkit.rope import rope_profile_fwhm
+    line = np.array([[20.0, 60.0], [180.0, 60.0]])
+    for T in (5.0, 8.0, 12.0):
+        fwhm, contrast = rope_profile_fwhm(_band_photo(T), line, T)
+        assert abs(fwhm - T) < 0.5, (T, fwhm)
+        assert contrast > 0.2
+    # a faint rope (a dull red hardly redder than the bark) stands out much less
+    _, faint = rope_profile_fwhm(_band_photo(8.0, red=(110, 70, 58)), line, 8.0)
+    assert faint < 0.09

@@ -157,6 +157,8 @@ class Job:
     base_xy : (float, float) or None
         Pixel the user tapped where the roped stem meets the ground (passed to the measure
         function as ``base_xy=`` only when given).
+    rope_diameter_m : float or None
+        The rope's true diameter (passed as ``rope_diameter_m=`` only when given).
     out_dir : str or None
         Write ``<out_stem>_overlay.png`` (and ``<out_stem>_tree.ply`` when the result has a
         ``debug['tree_cloud']``) there.
@@ -173,6 +175,7 @@ class Job:
     camera: Any
     pick_xy: Optional[tuple[float, float]] = None
     base_xy: Optional[tuple[float, float]] = None
+    rope_diameter_m: Optional[float] = None
     out_dir: Optional[str] = None
     out_stem: Optional[str] = None
     gt: Optional[tuple[str, int]] = None
@@ -257,6 +260,8 @@ def run_job(job: Job, measure: Callable[..., Any], session: Any = None, *,
                                   want_debug=want_debug, session=session)
         if job.base_xy is not None:
             kw["base_xy"] = tuple(job.base_xy)
+        if job.rope_diameter_m is not None:
+            kw["rope_diameter_m"] = float(job.rope_diameter_m)
         if job.gt is not None:
             from monodbh.models.synthetic.io import read_sample
 

@@ -4,7 +4,7 @@ Prints the table from which :data:`monodbh.toolkit.measure_core.SIGMA_MODEL_NETW
 (run it on a folder rendered from seeds used neither for training nor for the benchmark)::
 
     python -m monodbh.toolkit.error_model data/calset data/calset2 --json runs/error_model.json \
-        [--tap-base 3 [--untapped-too]] [--write]
+        [--tap-base 3 [--untapped-too]] [--rope-known] [--write]
 
 ``--write`` stores the measured sigmas (and each source's typical error, which picks the
 leading scale source) in ``models/manifest.json`` (``error_model``, with the
@@ -50,12 +50,14 @@ def _angle_deg(a, b) -> float:
 
 
 def collect(folder: str | Path, limit: int | None = None, progress: bool = True, *,
-            tap_noise_px: float | None = None) -> list[dict]:
+            tap_noise_px: float | None = None, rope_known: bool = False) -> list[dict]:
     """Measure every roped sample of ``folder``; one row per sample (errors included).
 
     ``tap_noise_px``: also simulate a user tapping the stem base (``dbh measure --base``) where
     it is visible, at the true pixel plus Gaussian noise of this 1-sigma (seeded per sample), so
-    the ``stem_base_user`` source is measured too.
+    the ``stem_base_user`` source is measured too. ``rope_known``: also give the pipeline each
+    sample's true rope diameter (``dbh measure --rope-mm``), so the ``rope_diameter`` source is
+    measured too.
     """
     from monodbh.calib import Camera
     from monodbh.toolkit.gt import simulated_tap
@@ -73,7 +75,8 @@ def collect(folder: str | Path, limit: int | None = None, progress: bool = True,
         if tap_noise_px is not None:
             with np.load(jp.with_suffix(".npz")) as z:
                 base_xy = simulated_tap(m, z["depth"], tap_noise_px, int(jp.stem))
-        r = measure_photo(str(jp.with_suffix(".jpg")), cam, session=sess, base_xy=base_xy)
+        rope_m = (m.get("rope") or {}).get("tube_diameter_m") if rope_known else None
+        r = measure_photo(str(jp.with_suffix(".jpg")), cam, session=sess, base_xy=base_xy, rope_diameter_m=rope_m)
         tree = next(t for t in m["trees"] if t["id"] == m["roped_tree"])
         row = dict(photo=jp.stem, true_dbh_cm=100 * tree["dbh_m"], error=r.error)
         if r.dbh_cm is not None:
@@ -161,7 +164,7 @@ def _table(summary: dict) -> str:
 #: error-model keys of the scale sources and DBH estimators (see measure_core.SIGMA_MODEL_NETWORK)
 SOURCE_KEYS = {"network": "network", "ground_plane": "ground_plane_network",
                "camera_height": "camera_height", "stem_base": "stem_base", "pose": "pose",
-               "stem_base_user": "stem_base_user"}
+               "stem_base_user": "stem_base_user", "rope_diameter": "rope_diameter"}
 ESTIMATOR_KEYS = {"tangent": "width", "cloud": "cloud"}
 
 
@@ -278,13 +281,16 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--untapped-too", action="store_true",
                     help="with --tap-base: measure every photo without a tap too, so that the automatic "
                          "stem base (used only where nobody taps) gets its sigma; sigmas from both runs")
+    ap.add_argument("--rope-known", action="store_true",
+                    help="give the pipeline each sample's true rope diameter (dbh measure --rope-mm) in the "
+                         "first run (with the taps), so the rope_diameter source gets its sigma")
     ap.add_argument("--write", action="store_true",
                     help="store the measured sigmas in models/manifest.json for the shipped models")
     a = ap.parse_args(argv)
     from monodbh.models.runtime import MANIFEST_PATH, load_manifest
     from monodbh.toolkit.pipeline import fresh_error_model
     stale = not fresh_error_model(load_manifest(MANIFEST_PATH))   # none yet for the shipped networks
-    rows = [r for f in a.folder for r in collect(f, a.limit, tap_noise_px=a.tap_base)]
+    rows = [r for f in a.folder for r in collect(f, a.limit, tap_noise_px=a.tap_base, rope_known=a.rope_known)]
     summary = summarize(rows)
     print(_table(summary))
     rows_sigma = rows

@@ -56,7 +56,7 @@ SIGMA_MODEL = dict(ovality=0.030, edge_px=0.35, pose=0.02, ground_plane=0.035, s
 #: masks (2 of 2 wrong) 0.5; stem width from mask-guided edges 0.096 -> 0.14; silhouette-net
 #: circle 0.19 -> 0.28 (and biased +14 %)
 SIGMA_MODEL_NETWORK = dict(network=0.37, ground_plane_network=0.47, camera_height=0.46, stem_base=0.50,
-                           pose=0.05, width=0.14, cloud=0.28, stem_base_user=0.06)
+                           pose=0.05, width=0.14, cloud=0.28, stem_base_user=0.06, rope_diameter=0.12)
 #: which "up" direction is used, best first: the calibrated pose, the vertical vanishing point
 #: of trunk edges, the depth network's ground plane, the stem's image direction
 UP_PRIORITY = ("pose", "vanishing", "ground_plane", "image")
@@ -74,6 +74,17 @@ ROPE_GAP_MIN_FRACTION = 0.04
 ROPE_GAP_MAX_RATIO = 0.2
 #: ... applied only where the rope itself stands out this much (red-ness contrast)
 ROPE_GAP_MIN_CONTRAST = 0.02
+#: the rope as a ruler (``--rope-mm``): its thickness across the band (the rope detector's full
+#: width at half maximum of the red-ness profile) is trusted from this many pixels on, where its
+#: mean profile's red-ness contrast is at least ROPE_RULER_MIN_CONTRAST. Measured on the
+#: calibration sets (seeds 9100, 9200) against the true ``f D / z`` of the rope's front: from 5 px
+#: on, median log ratio -0.058 (ROPE_RULER_FWHM_RATIO: the shaded flanks of the tube are less
+#: red), MAD 0.072; at 4-5 px +0.18, at 3-4 px +0.10 with MAD 0.20 (blur widens thin ropes). The 3
+#: ropes of 5 px or more measured 2.5-4.7x too thick (calibration sets and benchmark) were all
+#: faint (contrast 0.042-0.070; 95 % of the others above 0.11).
+ROPE_RULER_MIN_PX = 5.0
+ROPE_RULER_MIN_CONTRAST = 0.09
+ROPE_RULER_FWHM_RATIO = 0.944
 #: scale sources precise enough (a few per cent) that the tangent estimate alone sets the DBH
 #: with network perception (see measure_from_perception)
 PRECISE_SCALE_SOURCES = ("pose", "stem_base_user", "stem_base")
@@ -130,6 +141,9 @@ class Perception:
     base_xy: np.ndarray | None = None   # (2,) stem base pixel given by the user (front contact with the ground)
     rope_length_px: float | None = None  # length of the rope band across the stem (pixels)
     rope_band_mask: np.ndarray | None = None  # (H, W) bool band as wide as the rope's extent
+    rope_thickness_px: float | None = None  # the rope's measured thickness (FWHM across the band, pixels)
+    rope_contrast: float | None = None      # red-ness contrast of the rope's mean profile across the band
+    rope_diameter_m: float | None = None    # the rope's true diameter, given by the user (``--rope-mm``)
     use_vanishing: bool = True      # estimate "up" from the vertical vanishing point (no pose)
     sigma_network: dict | None = None  # measured error model of the shipped networks (manifest)
     rank_network: dict | None = None   # their typical errors, which pick the leading scale source
@@ -400,6 +414,24 @@ def measure_from_perception(perc: Perception, photo: str = "", *, timings: dict 
             lt, lb = base_metrology(trk[2]["end_xy"])
             if lt > 0 and lb > 0:
                 res.debug["scale_bound"] = (float(lt), base_status)
+    if perc.rope_diameter_m:
+        # the rope as a ruler: a tube of known diameter D subtends D / rho radians at distance
+        # rho, seen across its band at the stem's front
+        T = float(perc.rope_thickness_px or 0.0) / ROPE_RULER_FWHM_RATIO
+        if T * ROPE_RULER_FWHM_RATIO < ROPE_RULER_MIN_PX:
+            flags.append("rope_too_thin_for_scale")
+        elif not (perc.rope_contrast or 0.0) >= ROPE_RULER_MIN_CONTRAST:
+            flags.append("rope_too_faint_for_scale")
+        else:
+            n_band = np.array([-perc.rope_dir[1], perc.rope_dir[0]], np.float64)
+            n_band /= np.linalg.norm(n_band) + 1e-12
+            p0 = np.asarray(perc.rope_xy, np.float64)
+            r1, r2 = _rays(cam, np.stack([p0 - 0.5 * T * n_band, p0 + 0.5 * T * n_band]))
+            ang = float(np.arccos(np.clip(r1 @ r2, -1, 1)))
+            if ang > 0:
+                rho = float(perc.rope_diameter_m) / ang       # camera -> the rope at the stem's front
+                lt = (rho + 0.5 * float(perc.rope_diameter_m)) / max(1 - sin_half, 1e-6)
+                cands["rope_diameter"] = (lt, SN["rope_diameter"])
     if "pose" in up_sources and "pose" not in cands:
         # ground plane from the calibrated pose: axis base on the plane z = 0
         h = float(cam.pose.height_m)
@@ -447,7 +479,8 @@ def measure_from_perception(perc: Perception, photo: str = "", *, timings: dict 
         res.error = "cannot set the metric scale: no stem base, ground plane, pose or depth"
         return res
     res.debug["scale_candidates"] = {k: (float(l), float(sg)) for k, (l, sg) in cands.items()}
-    order = ["depth_gt", "pose", "stem_base_user", "ground_plane", "stem_base", "camera_height", "network"]
+    order = ["depth_gt", "pose", "stem_base_user", "ground_plane", "stem_base", "rope_diameter", "camera_height",
+             "network"]
     # inverse-variance combination of the geometric sources that agree
     # the leading source: least typical error where measured (manifest "rank"), else least sigma
     rank = (perc.rank_network or {}) if net else {}

@@ -222,7 +222,8 @@ def unproject_depth(depth: np.ndarray, K: np.ndarray, step: int = 1) -> np.ndarr
 
 
 def measure_photo(path: str, camera, *, pick_xy=None, want_cloud: bool = False, want_debug: bool = False,
-                  session: Session | None = None, gt: dict | None = None, base_xy=None) -> MeasureResult:
+                  session: Session | None = None, gt: dict | None = None, base_xy=None,
+                  rope_diameter_m: float | None = None) -> MeasureResult:
     """Measure the DBH of the roped tree in one photo.
 
     Parameters
@@ -233,6 +234,8 @@ def measure_photo(path: str, camera, *, pick_xy=None, want_cloud: bool = False, 
     base_xy : (x, y) photo pixel where the roped stem meets the ground (its front, middle),
         tapped by the user (``dbh measure --base X,Y``): sets the scale by single-view
         metrology between the rope and the base, the most accurate source without a pose.
+    rope_diameter_m : the rope's true diameter (metres; ``dbh measure --rope-mm``): where the rope
+        is at least ``ROPE_RULER_MIN_PX`` thick in the photo, its thickness sets the scale.
     want_cloud : also build the scene and tree point clouds (``result.debug['scene_cloud']``,
         ``result.debug['tree_cloud']``).
     want_debug : keep arrays for the overlay in ``result.debug``.
@@ -256,7 +259,7 @@ def measure_photo(path: str, camera, *, pick_xy=None, want_cloud: bool = False, 
         if gt is not None:
             return _measure_gt(path, rgb, camera, gt, tm)
         return _measure(path, rgb, camera, pick_xy, want_cloud, want_debug, session or Session(), tm,
-                        base_xy=base_xy)
+                        base_xy=base_xy, rope_diameter_m=rope_diameter_m)
     except MonodbhError as e:
         return MeasureResult(photo=str(path), error=str(e), timings_ms=tm)
 
@@ -273,7 +276,8 @@ def _measure_gt(path, rgb, camera, gt, tm):
     return measure_from_perception(perc, str(path), timings=tm)
 
 
-def _measure(path, rgb, camera, pick_xy, want_cloud, want_debug, sess: Session, tm, base_xy=None):
+def _measure(path, rgb, camera, pick_xy, want_cloud, want_debug, sess: Session, tm, base_xy=None,
+             rope_diameter_m=None):
     import cv2
 
     from .rope import detect_rope
@@ -348,6 +352,11 @@ def _measure(path, rgb, camera, pick_xy, want_cloud, want_debug, sess: Session, 
         tree_mask = seg.instance == tid
         flags_extra = list(rope_flags)
     band_mask = _rope_band_mask(rope, (h, w), height_factor=1.0)
+    rope_contrast = None
+    if rope_diameter_m and not rope_flags:
+        # the rope as a ruler: how clearly its mean profile stands out (faint ropes read too thick)
+        from .rope import rope_profile_fwhm
+        rope_contrast = rope_profile_fwhm(img, rope.polyline, rope.thickness_px)[1]
     edge_mask = tree_mask | band_mask
     ground = seg.semantic == 1
 
@@ -384,6 +393,10 @@ def _measure(path, rgb, camera, pick_xy, want_cloud, want_debug, sess: Session, 
                       base_xy=None if base_xy is None else _to_work_pixel(base_xy, (sx, sy), cw, cam),
                       rope_length_px=None if rope_flags else _polyline_span(rope.polyline),
                       rope_band_mask=band_mask,
+                      # (a rope found on the stem profile is thinner than a pixel: no ruler)
+                      rope_thickness_px=None if rope_flags else float(rope.thickness_px),
+                      rope_contrast=rope_contrast,
+                      rope_diameter_m=rope_diameter_m,
                       extra={"tree_mask_from_rope": tid == 0})
     res = measure_from_perception(perc, str(path), timings=tm)
     if sess.sigma_network is None:
@@ -443,11 +456,13 @@ def _tree_cloud(img, cam, tree_out, tree_mask, tid) -> PointCloud:
                       np.full(2 * len(xs), tid, np.int32))
 
 
-def reconstruct_photo(path: str, camera, session: Session | None = None, pick_xy=None, base_xy=None):
+def reconstruct_photo(path: str, camera, session: Session | None = None, pick_xy=None, base_xy=None,
+                      rope_diameter_m=None):
     """Measure and return ``(MeasureResult, PointCloud)``: the coarse scene cloud (metres,
     camera frame, rescaled by the rope) plus the refined cloud of the roped tree.
     ``base_xy``: the stem base pixel the user tapped (see :func:`measure_photo`)."""
-    res = measure_photo(path, camera, pick_xy=pick_xy, want_cloud=True, session=session, base_xy=base_xy)
+    res = measure_photo(path, camera, pick_xy=pick_xy, want_cloud=True, session=session, base_xy=base_xy,
+                        rope_diameter_m=rope_diameter_m)
     if res.error:
         return res, None
     cloud = PointCloud.concat([res.debug.get("scene_cloud"), res.debug.get("tree_cloud")])
