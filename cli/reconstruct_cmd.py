@@ -65,6 +65,9 @@ def reconstruct(
     base: Optional[str] = typer.Option(None, "--base", metavar="X,Y", help="Pixel where the roped stem "
                                        "meets the ground: sets the scale (see dbh measure --base).",
                                        show_default=False),
+    rope_mm: Optional[float] = typer.Option(None, "--rope-mm", min=1.0, max=100.0, help="The rope's true "
+                                            "diameter in mm: sets the scale where the rope is thick enough "
+                                            "(see dbh measure --rope-mm).", show_default=False),
     as_json: bool = typer.Option(False, "--json", help="Print the measurement as one JSON line."),
     models_dir: Optional[Path] = typer.Option(None, "--models-dir", help="Folder of the ONNX models.",
                                               show_default=False),
@@ -101,6 +104,8 @@ def reconstruct(
         kw = {"pick_xy": pick_xy} if pick_xy else {}
         if base_xy:
             kw["base_xy"] = base_xy
+        if rope_mm is not None:
+            kw["rope_diameter_m"] = rope_mm / 1000.0
         out = fn(photo, camera, session=session, **kw)
     except MonodbhError as exc:
         raise fail(str(exc))
