@@ -244,6 +244,7 @@ def evaluate(
 
     from monodbh.calib import MonodbhError
     from monodbh.toolkit.batch import Job, atomic_write_text, iter_results
+    from monodbh.toolkit.gt import true_rope_diameter_m
 
     if not folder.is_dir():
         raise fail(f"{folder}: no such folder", 2)
@@ -264,7 +265,7 @@ def evaluate(
             raise fail(f"{stem.with_suffix('.json')}: bad sample record ({type(exc).__name__}: {exc})")
         metas.append((i, gt))
         base_xy = _simulated_tap(stem, meta, tap_noise_px, i) if tap_base else None
-        rope_m = (meta.get("rope") or {}).get("tube_diameter_m") if rope_known else None
+        rope_m = true_rope_diameter_m(meta) if rope_known else None
         jobs.append(Job(n, str(stem.with_suffix(".jpg")), cam, gt=(str(folder), i) if gt_perception else None,
                         base_xy=base_xy, rope_diameter_m=rope_m, out_dir=str(out_dir) if out_dir else None))
     backend = make_backend(measure_fn, session_factory, models_dir)

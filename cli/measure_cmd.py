@@ -117,7 +117,7 @@ def _table(results, console) -> None:
                       r.scale_source or "-", Text(", ".join(r.flags), style="yellow"), tm)
     console.print(t)
     weak = [r for r in results if not r.error and not any(s in (r.scale_source or "")
-                                                           for s in ("stem_base", "pose"))]
+                                                           for s in ("stem_base", "pose", "rope_diameter"))]
     if weak:
         console.print(Text(f"{len(weak)} of {len(results)} measured without the stem base: their scale "
                            f"comes from the depth network{_network_error_text()}. Where the stem base is in "
@@ -158,7 +158,7 @@ def measure(
                                        "than the depth network).", show_default=False),
     rope_mm: Optional[float] = typer.Option(None, "--rope-mm", min=1.0, max=100.0, help="The rope's true "
                                             "diameter in mm: where the rope is at least 5 px thick in the "
-                                            "photo, its thickness sets the scale (about 3x more accurate "
+                                            "photo, its thickness sets the scale (about 2x more accurate "
                                             "than the depth network).", show_default=False),
     models_dir: Optional[Path] = typer.Option(None, "--models-dir", help="Folder of the ONNX models "
                                               "(default: the shipped ones).", show_default=False),

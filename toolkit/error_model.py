@@ -60,7 +60,7 @@ def collect(folder: str | Path, limit: int | None = None, progress: bool = True,
     measured too.
     """
     from monodbh.calib import Camera
-    from monodbh.toolkit.gt import simulated_tap
+    from monodbh.toolkit.gt import simulated_tap, true_rope_diameter_m
     from monodbh.toolkit.pipeline import Session, measure_photo
 
     sess = Session()
@@ -75,7 +75,7 @@ def collect(folder: str | Path, limit: int | None = None, progress: bool = True,
         if tap_noise_px is not None:
             with np.load(jp.with_suffix(".npz")) as z:
                 base_xy = simulated_tap(m, z["depth"], tap_noise_px, int(jp.stem))
-        rope_m = (m.get("rope") or {}).get("tube_diameter_m") if rope_known else None
+        rope_m = true_rope_diameter_m(m) if rope_known else None
         r = measure_photo(str(jp.with_suffix(".jpg")), cam, session=sess, base_xy=base_xy, rope_diameter_m=rope_m)
         tree = next(t for t in m["trees"] if t["id"] == m["roped_tree"])
         row = dict(photo=jp.stem, true_dbh_cm=100 * tree["dbh_m"], error=r.error)

@@ -10,7 +10,7 @@ import numpy as np
 
 from .measure_core import Perception
 
-__all__ = ["perception_from_ground_truth", "true_base_pixel", "simulated_tap"]
+__all__ = ["perception_from_ground_truth", "true_base_pixel", "simulated_tap", "true_rope_diameter_m"]
 
 
 def true_base_pixel(meta: dict, depth: np.ndarray | None = None, *, tolerance_m: float = 0.3):
@@ -54,6 +54,13 @@ def true_base_pixel(meta: dict, depth: np.ndarray | None = None, *, tolerance_m:
     if depth is not None and abs(float(depth[int(round(v)), int(round(u))]) - pc[2]) > tolerance_m:
         return xy, "occluded"
     return xy, "visible"
+
+
+def true_rope_diameter_m(meta: dict) -> float | None:
+    """The rope's true diameter (m) in a sample record, as a user gives it with ``dbh measure
+    --rope-mm`` (``dbh eval --rope-known``); None for a scene without rope."""
+    d = (meta.get("rope") or {}).get("tube_diameter_m")
+    return None if d is None else float(d)
 
 
 def simulated_tap(meta: dict, depth: np.ndarray, noise_px: float, seed: int):

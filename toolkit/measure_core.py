@@ -417,8 +417,9 @@ def measure_from_perception(perc: Perception, photo: str = "", *, timings: dict 
     if perc.rope_diameter_m:
         # the rope as a ruler: a tube of known diameter D subtends D / rho radians at distance
         # rho, seen across its band at the stem's front
-        T = float(perc.rope_thickness_px or 0.0) / ROPE_RULER_FWHM_RATIO
-        if T * ROPE_RULER_FWHM_RATIO < ROPE_RULER_MIN_PX:
+        T_read = float(perc.rope_thickness_px or 0.0)
+        T = T_read / ROPE_RULER_FWHM_RATIO       # the tube's thickness (the half-maximum width reads narrow)
+        if T_read < ROPE_RULER_MIN_PX:
             flags.append("rope_too_thin_for_scale")
         elif not (perc.rope_contrast or 0.0) >= ROPE_RULER_MIN_CONTRAST:
             flags.append("rope_too_faint_for_scale")
