@@ -6,11 +6,11 @@ from typing import List, Optional
 
 import typer
 
-KINDS = {"segmenter": "segmenter", "depth": "cden", "trees": "treenet"}
+KINDS = {"segmenter": "segmenter", "depth": "cden", "trees": "treenet", "base": "basenet"}
 
 
 def train(
-    kind: str = typer.Argument(..., help="segmenter | depth | trees"),
+    kind: str = typer.Argument(..., help="segmenter | depth | trees | base (the stem-base finder)"),
     out: Path = typer.Option(..., "--out", "-o", help="Run folder (config.json, checkpoint.pt, log.jsonl)."),
     steps: int = typer.Option(20000, "--steps", min=1, help="Total optimiser steps."),
     resume: bool = typer.Option(False, "--resume", help="Continue from OUT/checkpoint.pt."),
@@ -26,7 +26,7 @@ def train(
     augment: Optional[str] = typer.Option(None, "--augment", help="Segmenter augmentation preset: default | "
                                           "strong (wider colour jitter)."),
 ) -> None:
-    """Train one of the three networks on synthetic scenes (CPU, or CUDA when present)."""
+    """Train one of the networks on synthetic scenes (CPU, or CUDA when present)."""
     if kind not in KINDS:
         raise typer.BadParameter(f"kind must be one of {', '.join(KINDS)}, got {kind!r}")
     opts = {"size": size}
@@ -52,6 +52,9 @@ def train(
     elif kind == "depth":
         from monodbh.models.training.depth import train_depth
         res = train_depth(str(out), steps, data=d, resume=resume, val_data=v, stop_at=stop_at, **opts)
+    elif kind == "base":
+        from monodbh.models.training.basenet import train_basenet
+        res = train_basenet(str(out), steps, data=d, resume=resume, val_data=v, stop_at=stop_at, **opts)
     else:
         from monodbh.models.training.trees import train_trees
         res = train_trees(str(out), steps, data=d, resume=resume, val_data=v, stop_at=stop_at, **opts)

@@ -251,7 +251,7 @@ def write_manifest_error_model(sigma: dict, folder: str, n: int, manifest_path: 
 
     from monodbh.models.runtime import MANIFEST_PATH
     from monodbh.toolkit.batch import atomic_write_text
-    from monodbh.toolkit.pipeline import DEPTH_FLIP_TTA
+    from monodbh.toolkit.pipeline import DEPTH_FLIP_TTA, ERROR_MODEL_KINDS
 
     p = Path(manifest_path) if manifest_path else Path(MANIFEST_PATH)
     man = json.loads(p.read_text())
@@ -261,7 +261,7 @@ def write_manifest_error_model(sigma: dict, folder: str, n: int, manifest_path: 
         "rank": {k: round(float(v), 4) for k, v in sorted((rank or {}).items())},
         **({"distance_calibration": {k: (round(v, 4) if isinstance(v, float) else v)
                                      for k, v in distance_calibration.items()}} if distance_calibration else {}),
-        "models": {k: models[k].get("sha256") for k in ("segmenter", "cden", "treenet")},
+        "models": {k: models[k].get("sha256") for k in ERROR_MODEL_KINDS if k in models},
         "depth_flip_tta": bool(DEPTH_FLIP_TTA),
         "data": str(folder), "n_measured": int(n),
         "computed_at": dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),

@@ -20,6 +20,9 @@ __all__ = ["Session", "fresh_error_model", "measure_photo", "reconstruct_photo",
 
 #: Photos are processed at this long side (pixels); edges are located to sub-pixel precision.
 WORK_LONG_SIDE_PX = 1600
+#: with ``--rope-mm``, read the rope's thickness again on the full-resolution photo when it is
+#: larger than the working image (see :func:`rope_at_full_resolution`)
+ROPE_FULL_RES = True
 #: the depth network sees the photo and its mirror image (see :class:`~monodbh.models.runtime_gan.DepthPredictor`)
 DEPTH_FLIP_TTA = True
 
@@ -58,6 +61,11 @@ class Session:
         self.segmenter = Segmenter(path_of("segmenter"), threads=threads, manifest=manifest)
         self.depth = DepthPredictor(str(path_of("cden")), threads=threads, flip_tta=DEPTH_FLIP_TTA)
         self.trees = TreePredictor(str(path_of("treenet")), threads=threads)
+        # the stem-base network is optional (without it the edge tracker looks for the base)
+        self.base = None
+        if models.get("basenet") and (mdir / models["basenet"]["file"]).exists():
+            from ..models.runtime_base import BaseFinder
+            self.base = BaseFinder(mdir / models["basenet"]["file"], threads=threads, manifest=manifest)
         self.models_dir = mdir
         # the error model measured for exactly these networks (python -m monodbh.toolkit.error_model
         # FOLDER --write): per-source 1-sigma; stale (built-in defaults, flagged) after retraining
@@ -69,13 +77,17 @@ class Session:
         self.load_ms = 1000 * (time.perf_counter() - t0)
 
 
+#: the shipped networks the measured error model depends on (those shipped; basenet is optional)
+ERROR_MODEL_KINDS = ("segmenter", "cden", "treenet", "basenet")
+
+
 def fresh_error_model(manifest: dict) -> dict:
     """``manifest["error_model"]`` when it was measured for exactly the shipped networks (their
     sha256) run as now (:data:`DEPTH_FLIP_TTA`), else ``{}`` (stale after retraining, or never
     measured)."""
     em = manifest.get("error_model") or {}
     models = manifest.get("models", manifest)
-    shipped = {k: (models.get(k) or {}).get("sha256") for k in ("segmenter", "cden", "treenet")}
+    shipped = {k: (models.get(k) or {}).get("sha256") for k in ERROR_MODEL_KINDS if k in models}
     fresh = (em.get("sigma") is not None and em.get("models") == shipped
              and bool(em.get("depth_flip_tta", False)) == DEPTH_FLIP_TTA)
     return em if fresh else {}
@@ -104,6 +116,68 @@ def _work_image(rgb: np.ndarray, camera):
         pin = Camera(K_new, np.zeros(5), (w, h), pose=cam.pose)
         return und, pin, (sx, sy), cw
     return img, cw, (sx, sy), cw
+
+
+def _full_res_crop(rgb: np.ndarray, camera, cam_work, scale, box) -> tuple[np.ndarray, np.ndarray]:
+    """The undistorted full-resolution photo inside ``box`` = (x0, y0, x1, y1), given in the
+    full-resolution pinhole frame of the working camera ``cam_work`` (its ``K`` scaled back up by
+    1 / ``scale``). Returns (crop (h, w, 3) uint8, its camera matrix K_full (3, 3))."""
+    import cv2
+
+    sx, sy = scale
+    K = np.asarray(cam_work.K, np.float64).copy()
+    K[0, 0] /= sx
+    K[0, 2] = (K[0, 2] + 0.5) / sx - 0.5
+    K[1, 1] /= sy
+    K[1, 2] = (K[1, 2] + 0.5) / sy - 0.5
+    H, W = rgb.shape[:2]
+    x0, y0, x1, y1 = (int(round(v)) for v in box)
+    cam = camera.for_image(W, H)
+    if not np.any(np.asarray(cam.dist) != 0) and np.allclose(K, cam.K):
+        xa, ya, xb, yb = max(x0, 0), max(y0, 0), min(x1, W), min(y1, H)
+        out = np.zeros((y1 - y0, x1 - x0, 3), np.uint8)
+        out[ya - y0:yb - y0, xa - x0:xb - x0] = rgb[ya:yb, xa:xb]
+        return out, K
+    u, v = np.meshgrid(np.arange(x0, x1, dtype=np.float64), np.arange(y0, y1, dtype=np.float64))
+    rays = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], -1).reshape(-1, 3)
+    src, _ = cv2.projectPoints(rays, np.zeros(3), np.zeros(3), np.asarray(cam.K, np.float64),
+                               np.asarray(cam.dist, np.float64))
+    src = src.reshape(y1 - y0, x1 - x0, 2).astype(np.float32)
+    out = cv2.remap(rgb, src[..., 0], src[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+    return out, K
+
+
+def rope_at_full_resolution(rgb: np.ndarray, camera, cam_work, scale, rope) -> dict | None:
+    """The rope's thickness read again on the full-resolution photo (a 12 MP photo is measured
+    at :data:`WORK_LONG_SIDE_PX`, where a rope is 2.5x thinner than the sensor sees it).
+
+    The rope band found in the working image is cut out of the undistorted full-resolution
+    photo (with rows above and below it and part of the background beside it), the band
+    detector is run again there at the same place, and its thickness and mean-profile contrast
+    are returned in full-resolution pixels: ``{"thickness_px", "contrast", "scale"}`` with
+    ``scale`` the working / full-resolution pixel ratio; None when the photo is no larger than
+    the working image or the band is not found again at the same place.
+    """
+    from .rope import detect_rope, rope_profile_fwhm
+
+    sx, sy = scale
+    if max(sx, sy) > 0.95 or not rope or rope.polyline is None or len(rope.polyline) < 2:
+        return None
+    P = (np.asarray(rope.polyline, np.float64) + 0.5) / (sx, sy) - 0.5
+    T = float(rope.thickness_px) / sx
+    L = float(np.linalg.norm(P[-1] - P[0]))
+    mx, my = 0.35 * L + 4 * T + 8, max(10 * T, 0.25 * L, 24.0)
+    box = (P[:, 0].min() - mx, P[:, 1].min() - my, P[:, 0].max() + mx, P[:, 1].max() + my)
+    crop, _ = _full_res_crop(rgb, camera, cam_work, scale, box)
+    c = (np.asarray(rope.center_xy, np.float64) + 0.5) / (sx, sy) - 0.5 - (box[0], box[1])
+    c = c - (round(box[0]) - box[0], round(box[1]) - box[1])
+    det = detect_rope(crop, None, pick_xy=(float(c[0]), float(c[1])), min_score=-np.inf)
+    if not det or np.hypot(*(np.asarray(det.center_xy) - c)) > max(3 * T, 0.15 * L) + 4:
+        return None
+    if not 0.4 < det.thickness_px / max(T, 1e-6) < 2.5:
+        return None
+    contrast = rope_profile_fwhm(crop, det.polyline, det.thickness_px)[1]
+    return {"thickness_px": float(det.thickness_px), "contrast": float(contrast), "scale": float(sx)}
 
 
 def _to_work_pixel(xy, scale, cam_distorted, cam_work) -> np.ndarray:
@@ -353,10 +427,22 @@ def _measure(path, rgb, camera, pick_xy, want_cloud, want_debug, sess: Session, 
         flags_extra = list(rope_flags)
     band_mask = _rope_band_mask(rope, (h, w), height_factor=1.0)
     rope_contrast = None
+    rope_T = None if rope_flags else float(rope.thickness_px)
+    rope_T_native = rope_T
     if rope_diameter_m and not rope_flags:
         # the rope as a ruler: how clearly its mean profile stands out (faint ropes read too thick)
         from .rope import rope_profile_fwhm
         rope_contrast = rope_profile_fwhm(img, rope.polyline, rope.thickness_px)[1]
+        if ROPE_FULL_RES:
+            # a photo larger than the working image: its thickness read where the sensor has
+            # all its pixels (a rope too thin to measure at 1600 px may not be at 4000)
+            t_f = time.perf_counter()
+            full = rope_at_full_resolution(rgb, camera, cam, (sx, sy), rope)
+            tm["rope_full_res"] = 1000 * (time.perf_counter() - t_f)
+            if full is not None:
+                rope_T, rope_T_native = full["thickness_px"] * full["scale"], full["thickness_px"]
+                rope_contrast = full["contrast"]
+                flags_extra.append("rope_read_at_full_resolution")
     edge_mask = tree_mask | band_mask
     ground = seg.semantic == 1
 
@@ -387,6 +473,7 @@ def _measure(path, rgb, camera, pick_xy, want_cloud, want_debug, sess: Session, 
                       rope_dir=np.asarray(rope.direction, float), rope_half_px=max(0.5, rope.thickness_px / 2),
                       tree_mask=tree_mask, ground_mask=ground, depth=depth, depth_is_metric=False,
                       silhouette_fn=silhouette_fn, source="network",
+                      base_finder=None if sess.base is None else sess.base.find,
                       edge_search_px=max(3.0, 0.5 * cell), edge_mask=edge_mask,
                       sigma_network=sess.sigma_network, rank_network=sess.rank_network,
                       distance_calibration=sess.distance_calibration,
@@ -394,7 +481,7 @@ def _measure(path, rgb, camera, pick_xy, want_cloud, want_debug, sess: Session, 
                       rope_length_px=None if rope_flags else _polyline_span(rope.polyline),
                       rope_band_mask=band_mask,
                       # (a rope found on the stem profile is thinner than a pixel: no ruler)
-                      rope_thickness_px=None if rope_flags else float(rope.thickness_px),
+                      rope_thickness_px=rope_T, rope_thickness_native_px=rope_T_native,
                       rope_contrast=rope_contrast,
                       rope_diameter_m=rope_diameter_m,
                       extra={"tree_mask_from_rope": tid == 0})

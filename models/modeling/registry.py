@@ -181,6 +181,7 @@ KIND_MODULES: dict[str, str] = {
     "segmenter": "monodbh.models.modeling.segmenter",
     "cden": "monodbh.models.modeling.cden",
     "treenet": "monodbh.models.modeling.treenet",
+    "basenet": "monodbh.models.modeling.basenet",
 }
 
 

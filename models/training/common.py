@@ -786,6 +786,7 @@ TRAINING_MODULES: dict[str, str] = {
     "segmenter": "monodbh.models.training.segmenter",
     "cden": "monodbh.models.training.depth",
     "treenet": "monodbh.models.training.trees",
+    "basenet": "monodbh.models.training.basenet",
 }
 _CALIB_HOOKS: dict[str, Callable[..., list[dict[str, np.ndarray]]]] = {}
 _EVAL_HOOKS: dict[str, Callable[..., dict[str, float]]] = {}

@@ -1,0 +1,177 @@
+"""Stem-base network: strip geometry, ground-truth labels, ONNX export, training smoke run, hooks."""
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from monodbh.models.modeling import build
+from monodbh.models.runtime_base import (STRIP_H, STRIP_ROWS_PER_W, STRIP_W, decode_base_logits,
+                                         stem_strip, strip_geometry, strip_row_to_xy)
+
+
+def fake_base_sample(seed=0, W=160, H=240, dist=4.0, r=0.15, cam_h=1.5, hide_base=False):
+    """A level camera ``cam_h`` m above flat ground; one vertical round stem of radius ``r`` at
+    ``dist`` m straight ahead. The stem's front contact with the ground is at row
+    ``cy + f cam_h / (dist - r)``; ``hide_base`` puts a bush in front of it."""
+    rng = np.random.default_rng(seed)
+    f, cx, cy = 200.0, W / 2 - 0.5, H / 2 - 0.5
+    v, u = np.mgrid[0:H, 0:W].astype(np.float64)
+    depth = np.where(v > cy + 1, cam_h * f / np.maximum(v - cy, 1e-6), 0.0)   # ground (0 = sky)
+    x = (u - cx) * dist / f
+    on = np.abs(x) <= r
+    # the stem stands on the ground: its pixels are those above its base row
+    z_front = dist - np.sqrt(np.clip(r * r - x * x, 0, None))
+    v_base = cy + f * cam_h / z_front
+    stem = on & (v <= v_base)
+    depth = np.where(stem, z_front, depth)
+    rgb = rng.integers(0, 40, (H, W, 3)).astype(np.uint8)
+    rgb[depth > 0] += np.array([60, 90, 30], np.uint8)          # ground: greenish
+    rgb[stem] = np.array([120, 90, 60], np.uint8) + rng.integers(0, 20, (int(stem.sum()), 3)).astype(np.uint8)
+    vb = cy + f * cam_h / (dist - r)
+    if hide_base:
+        bush = (np.abs(u - cx) < 3 * r * f / dist) & (np.abs(v - vb) < 12)
+        depth[bush] = dist - 1.0
+        rgb[bush] = (20, 120, 20)
+    tree = {"id": 1, "dbh_m": 2 * r, "r_bh_m": r, "position_world": [0.0, dist, 0.0],
+            "axis_world": [0, 0, 1], "taper": 0.0, "flare": 0.0, "distance_m": dist}
+    meta = {"K": [[f, 0, cx], [0, f, cy], [0, 0, 1]], "dist": [0.0] * 5, "width": W, "height": H,
+            "R_world_from_cam": [[1, 0, 0], [0, 0, 1], [0, -1, 0]], "t_world_from_cam": [0, 0, cam_h],
+            "trees": [tree], "roped_tree": 1}
+    return {"rgb": rgb, "depth": depth.astype(np.float32), "meta": meta}, vb
+
+
+def test_strip_geometry_maps_rows_down_the_stem():
+    A = strip_geometry((100.0, 50.0), (0.0, 2.0), 20.0)
+    mid = A @ np.array([STRIP_W / 2 - 0.5, 0.0, 1.0])
+    assert np.allclose(mid, (100, 50))
+    down = A @ np.array([STRIP_W / 2 - 0.5, STRIP_ROWS_PER_W, 1.0])
+    assert np.allclose(down, (100, 70))                      # 10 rows = one stem width
+    assert np.allclose(strip_row_to_xy(5.0, (100, 50), (0, 1), 20.0), (100, 60))
+    with pytest.raises(ValueError):
+        strip_geometry((0, 0), (0, 0), 10.0)
+
+
+def test_stem_strip_shape_inside_flag_and_content():
+    rgb = np.zeros((200, 100, 3), np.uint8)
+    rgb[:, 45:55] = 200                                       # a bright vertical stem, 10 px wide
+    s, inside = stem_strip(rgb, (49.5, 20.0), (0, 1), 10.0)
+    assert s.shape == (STRIP_H, STRIP_W, 3) and inside.shape == (STRIP_H, STRIP_W)
+    # the strip is 19.2 widths long: it leaves the photo after 180 px (row 180)
+    assert inside[:170].all() and not inside[185:].any()
+    row = s[50, :, 0].astype(float)
+    assert row[STRIP_W // 2] > 150 and row[2] < 50 and row[-3] < 50    # stem in the middle quarter
+    assert (row > 100).sum() == pytest.approx(STRIP_W / 4, abs=2)
+
+
+def test_decode_base_logits():
+    z = np.full(STRIP_H + 1, -30.0)
+    z[80] = 4.0
+    z[81] = 4.0
+    row, p = decode_base_logits(z)
+    assert row == pytest.approx(80.5) and p > 0.999
+    z[-1] = 10.0
+    assert decode_base_logits(z)[1] < 0.01
+
+
+def test_ground_truth_strip_label_is_the_base_row():
+    from monodbh.models.training.basenet import BaseTrainConfig, tree_strips
+
+    s, vb = fake_base_sample()
+    ex = tree_strips(s, None, BaseTrainConfig(), 1)
+    assert len(ex) == 1 and ex[0]["roped"]
+    f, r, dist = 200.0, 0.15, 4.0
+    top_v = 119.5 + f * (1.5 - 1.3) / dist
+    width = 2 * f * r / dist
+    assert ex[0]["width_px"] == pytest.approx(width, rel=1e-6)
+    assert ex[0]["row"] == pytest.approx((vb - top_v) / (width / STRIP_ROWS_PER_W), abs=0.05)
+    # the strip shows the stem above its label row and the ground below it
+    st = ex[0]["strip"].astype(float)
+    k = int(ex[0]["row"])
+    assert st[k - 5, STRIP_W // 2, 0] > st[k + 5, STRIP_W // 2, 0] + 30
+    hidden, _ = fake_base_sample(hide_base=True)
+    assert tree_strips(hidden, None, BaseTrainConfig(), 1)[0]["row"] == -1.0
+    # jittered strips keep a consistent label (the base's row on the jittered strip)
+    exj = tree_strips(s, np.random.default_rng(0), BaseTrainConfig(), 4)
+    assert len(exj) == 4 and all(abs(e["row"] - ex[0]["row"]) < 8 for e in exj)
+
+
+def test_basenet_onnx_matches_torch(tmp_path):
+    from monodbh.models.export.onnx_io import export_onnx
+
+    torch.manual_seed(0)
+    g = build("basenet", "tiny").eval()
+    assert g(torch.randn(2, 4, STRIP_H, STRIP_W)).shape == (2, STRIP_H + 1)
+    res = export_onnx(g, g.spec, tmp_path / "basenet.onnx", check=True, atol=1e-4)
+    assert max(res["max_abs_err"].values()) < 1e-4
+
+
+def test_train_basenet_smoke_resume_and_hooks(tmp_path):
+    from monodbh.models.modeling import get_spec
+    from monodbh.models.training.basenet import base_metrics, train_basenet
+    from monodbh.models.training.common import ListSource, calibration_inputs, evaluate_kind
+
+    data = [fake_base_sample(i, dist=3.0 + i)[0] for i in range(3)]
+    opts = dict(size="tiny", batch_size=4, jitters=2, val_n=1, threads=1, warmup_steps=1, log_every=1,
+                verbose=False)
+    r = train_basenet(str(tmp_path / "a"), 2, data, stop_at=1, **opts)
+    assert r["step"] == 1 and r["bank"] == 4                 # 2 training samples x 2 jitters
+    r = train_basenet(str(tmp_path / "a"), 2, data, resume=True, verbose=False)
+    assert r["step"] == 2 and {"recall", "precision", "score"} <= set(r["val"])
+    cfg = json.loads((tmp_path / "a" / "config.json").read_text())
+    assert cfg["kind"] == "basenet" and cfg["train_indices"] == 2
+    spec = get_spec("basenet", "tiny")
+    src = ListSource(data)
+    feeds = calibration_inputs("basenet", 2, 0, spec, src)
+    assert feeds and feeds[0]["strip"].shape == (1, 4, STRIP_H, STRIP_W)
+    g = build("basenet", "tiny").eval()
+
+    def predict(f):
+        with torch.no_grad():
+            return {"logits": g(torch.from_numpy(f["strip"])).numpy()}
+
+    m = evaluate_kind("basenet", predict, 2, 0, spec, src)
+    assert spec.metric == "score" and 0.0 <= m["score"] <= 1.0
+    # metrics: a perfect answer scores 1, a "no base" answer on a visible base 0
+    z = np.full((2, STRIP_H + 1), -30.0)
+    z[0, 40] = 5.0
+    z[1, -1] = 5.0
+    assert base_metrics(z, np.array([40.0, -1.0]))["score"] == 1.0
+    assert base_metrics(z[1:], np.array([40.0]))["recall"] == 0.0
+
+
+def test_shipped_base_finder_on_the_bundled_example():
+    from pathlib import Path
+
+    import monodbh.toolkit.pipeline as pl
+    from monodbh.calib.photo import load_photo
+    from monodbh.models.runtime_base import BaseEstimate, BaseFinder
+
+    finder = BaseFinder()
+    assert finder.spec["kind"] == "basenet" and 0.0 < finder.threshold < 1.0
+    rgb = load_photo(Path(pl.__file__).resolve().parent / "examples" / "example.jpg")
+    H, W = rgb.shape[:2]
+    z = finder.logits(rgb, (W / 2, H / 2), (0.0, 1.0), 30.0)
+    assert z.shape == (STRIP_H + 1,) and np.isfinite(z).all()
+    est = finder.find(rgb, (W / 2, H / 2), (0.0, 1.0), 30.0)
+    assert isinstance(est, BaseEstimate) and 0.0 <= est.p_base <= 1.0
+    assert (est.xy is None) == (est.p_base < finder.threshold)
+    if est:
+        assert est.xy[1] > H / 2 and abs(est.xy[0] - W / 2) < 1e-6   # on the strip's mid-line, below
+
+
+def test_stem_image_direction_blends_the_vertical():
+    from types import SimpleNamespace
+
+    from monodbh.toolkit.measure_core import STEM_DIRECTION_EDGE_WEIGHT, _stem_image_direction
+
+    cam = SimpleNamespace(K=np.array([[500.0, 0, 320], [0, 500.0, 240], [0, 0, 1]]))
+    tilted = np.array([np.sin(np.radians(10)), np.cos(np.radians(10))])
+    # a level camera: the vertical through any pixel is the image column
+    d = _stem_image_direction(cam, (100.0, 300.0), tilted, {"vanishing": np.array([0.0, -1.0, 0.0])})
+    ang = np.degrees(np.arctan2(d[0], d[1]))
+    assert ang == pytest.approx(np.degrees(np.arctan2(STEM_DIRECTION_EDGE_WEIGHT * tilted[0],
+                                                      STEM_DIRECTION_EDGE_WEIGHT * tilted[1]
+                                                      + 1 - STEM_DIRECTION_EDGE_WEIGHT)), abs=1e-6)
+    # no pose and no vanishing point: the edges' own direction
+    assert np.allclose(_stem_image_direction(cam, (100.0, 300.0), tilted, {"ground_plane": np.zeros(3)}), tilted)
