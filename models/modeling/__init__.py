@@ -1,8 +1,9 @@
-"""Torch ``nn.Module``s of the three networks (training-only; never imported by the runtime).
+"""Torch ``nn.Module``s of the networks (training-only; never imported by the runtime).
 
 Use the registry: ``build(kind, size)`` returns a fresh model with ``.spec`` (its
 :class:`~monodbh.models.modeling.registry.ModelSpec`); ``get_spec(kind, size)`` the I/O contract.
-Kinds: ``"segmenter"`` (``segmenter.py``), ``"cden"`` (``cden.py``), ``"treenet"`` (``treenet.py``).
+Kinds: ``"segmenter"`` (``segmenter.py``), ``"cden"`` (``cden.py``), ``"treenet"`` (``treenet.py``),
+``"basenet"`` (``basenet.py``, the stem-base finder).
 """
 from monodbh.models.modeling.registry import (BUILDERS, KIND_MODULES, SIZES, SPECS, ModelSpec,
                                               Preprocess, TensorSpec, build, get_spec, kinds,
