@@ -163,7 +163,7 @@ def _table(summary: dict) -> str:
 
 #: error-model keys of the scale sources and DBH estimators (see measure_core.SIGMA_MODEL_NETWORK)
 SOURCE_KEYS = {"network": "network", "ground_plane": "ground_plane_network",
-               "camera_height": "camera_height", "stem_base": "stem_base", "pose": "pose",
+               "camera_height": "camera_height", "stem_base": "stem_base", "stem_base_weak": "stem_base_weak", "pose": "pose",
                "stem_base_user": "stem_base_user", "rope_diameter": "rope_diameter"}
 ESTIMATOR_KEYS = {"tangent": "width", "cloud": "cloud"}
 
