@@ -18,7 +18,7 @@ The output (:class:`BaseFinder`)
     photo, or further down than the strip). The base row is the probability-weighted mean
     row around the most likely one; ``p_base`` its total probability.
 
-This module imports only numpy, cv2 and ``monodbh.models.runtime``; training
+This module imports only numpy, cv2 and ``monodbh.models.runtime`` / ``runtime_gan``; training
 (``monodbh.models.training.basenet``) imports :func:`stem_strip` from here so that train and
 inference cut identical strips.
 """
@@ -33,9 +33,10 @@ import cv2
 import numpy as np
 
 from monodbh.models.runtime import OnnxPredictor
+from monodbh.models.runtime_gan import IMAGENET_MEAN, normalize_rgb
 
 __all__ = ["STRIP_H", "STRIP_W", "STRIP_ROWS_PER_W", "STRIP_SPAN_W", "STRIP_LEN_W",
-           "strip_geometry", "stem_strip", "strip_row_to_xy", "decode_base_logits",
+           "strip_geometry", "stem_strip", "strip_feed", "strip_row_to_xy", "decode_base_logits",
            "BaseEstimate", "BaseFinder"]
 
 STRIP_H: int = 192           #: rows down the stem
@@ -44,8 +45,7 @@ STRIP_ROWS_PER_W: float = 10.0   #: rows per stem width (so the strip is 19.2 wi
 STRIP_SPAN_W: float = 4.0    #: stem widths across the strip (the stem fills its middle quarter)
 STRIP_LEN_W: float = STRIP_H / STRIP_ROWS_PER_W
 
-_MEAN = np.array([0.485, 0.456, 0.406], np.float32)
-_STD = np.array([0.229, 0.224, 0.225], np.float32)
+_MEAN_U8 = np.round(IMAGENET_MEAN * 255).astype(np.uint8)     #: colour outside the photo
 
 
 def strip_geometry(top_xy, along, width_px: float) -> np.ndarray:
@@ -110,11 +110,11 @@ def stem_strip(rgb: np.ndarray, top_xy, along, width_px: float) -> tuple[np.ndar
     y0 = max(int(math.floor(corners[:, 1].min())) - pad, 0)
     x1 = min(int(math.ceil(corners[:, 0].max())) + pad, W)
     y1 = min(int(math.ceil(corners[:, 1].max())) + pad, H)
-    border = tuple(float(v) for v in _MEAN * 255.0)
+    border = tuple(float(v) for v in IMAGENET_MEAN * 255.0)
     inside = np.zeros((STRIP_H, STRIP_W), bool)
     if x1 <= x0 or y1 <= y0:
         out = np.empty((STRIP_H, STRIP_W, 3), np.uint8)
-        out[...] = np.round(_MEAN * 255).astype(np.uint8)
+        out[...] = _MEAN_U8
         return out, inside
     roi = rgb[y0:y1, x0:x1].astype(np.float32)
     if shrink > 1.25:      # anti-alias before shrinking (each axis by its own factor)
@@ -131,17 +131,13 @@ def stem_strip(rgb: np.ndarray, top_xy, along, width_px: float) -> tuple[np.ndar
     py = A[1, 0] * cols + A[1, 1] * rows + A[1, 2]
     inside = (px >= 0) & (px <= W - 1) & (py >= 0) & (py <= H - 1)
     out = np.clip(out + 0.5, 0, 255).astype(np.uint8)
-    out[~inside] = np.round(_MEAN * 255).astype(np.uint8)
+    out[~inside] = _MEAN_U8
     return out, inside
 
 
 def strip_feed(strip: np.ndarray, inside: np.ndarray) -> np.ndarray:
     """``(STRIP_H, STRIP_W, 3)`` uint8 + ``(STRIP_H, STRIP_W)`` bool -> ``(4, STRIP_H, STRIP_W)`` float32."""
-    x = (strip.astype(np.float32) * (1.0 / 255.0) - _MEAN) / _STD
-    return np.ascontiguousarray(np.concatenate([x.transpose(2, 0, 1), inside[None].astype(np.float32)], 0))
-
-
-__all__.append("strip_feed")
+    return np.ascontiguousarray(np.concatenate([normalize_rgb(strip), inside[None].astype(np.float32)], 0))
 
 
 def decode_base_logits(logits: np.ndarray, window: int = 3) -> tuple[float, float]:

@@ -31,29 +31,12 @@ def true_base_pixel(meta: dict, depth: np.ndarray | None = None, *, tolerance_m:
     --------
     >>> xy, status = true_base_pixel(meta, depth)     # doctest: +SKIP
     """
-    import cv2
+    from ..models.synthetic import stem_base_pixel
     tid = meta.get("roped_tree")
     if not tid:
         return None, "no_rope"
     tree = next(t for t in meta["trees"] if t["id"] == tid)
-    R = np.asarray(meta["R_world_from_cam"], float)
-    t = np.asarray(meta["t_world_from_cam"], float)
-    P = np.asarray(tree["position_world"], float).copy()
-    toward = t[:2] - P[:2]
-    P[:2] += toward / (np.linalg.norm(toward) + 1e-12) * float(tree["r_bh_m"])
-    pc = R.T @ (P - t)
-    if pc[2] <= 0.05:
-        return None, "outside"
-    uv, _ = cv2.projectPoints(pc[None], np.zeros(3), np.zeros(3), np.asarray(meta["K"], float),
-                              np.asarray(meta.get("dist") or np.zeros(5), float))
-    u, v = uv.reshape(2)
-    W, H = int(meta["width"]), int(meta["height"])
-    if not (0 <= u <= W - 1 and 0 <= v <= H - 1):
-        return None, "outside"
-    xy = np.array([u, v])
-    if depth is not None and abs(float(depth[int(round(v)), int(round(u))]) - pc[2]) > tolerance_m:
-        return xy, "occluded"
-    return xy, "visible"
+    return stem_base_pixel(meta, tree, depth, tolerance_m=tolerance_m)
 
 
 def true_rope_diameter_m(meta: dict) -> float | None:

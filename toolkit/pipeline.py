@@ -124,10 +124,10 @@ def _work_image(rgb: np.ndarray, camera):
     return img, cw, (sx, sy), cw
 
 
-def _full_res_crop(rgb: np.ndarray, camera, cam_work, scale, box) -> tuple[np.ndarray, np.ndarray]:
-    """The undistorted full-resolution photo inside ``box`` = (x0, y0, x1, y1), given in the
-    full-resolution pinhole frame of the working camera ``cam_work`` (its ``K`` scaled back up by
-    1 / ``scale``). Returns (crop (h, w, 3) uint8, its camera matrix K_full (3, 3))."""
+def _full_res_crop(rgb: np.ndarray, camera, cam_work, scale, box) -> np.ndarray:
+    """The undistorted full-resolution photo inside ``box`` = (x0, y0, x1, y1) (integers), given
+    in the full-resolution pinhole frame of the working camera ``cam_work`` (its ``K`` scaled
+    back up by 1 / ``scale``): (y1 - y0, x1 - x0, 3) uint8."""
     import cv2
 
     sx, sy = scale
@@ -137,20 +137,19 @@ def _full_res_crop(rgb: np.ndarray, camera, cam_work, scale, box) -> tuple[np.nd
     K[1, 1] /= sy
     K[1, 2] = (K[1, 2] + 0.5) / sy - 0.5
     H, W = rgb.shape[:2]
-    x0, y0, x1, y1 = (int(round(v)) for v in box)
+    x0, y0, x1, y1 = box
     cam = camera.for_image(W, H)
     if not np.any(np.asarray(cam.dist) != 0) and np.allclose(K, cam.K):
         xa, ya, xb, yb = max(x0, 0), max(y0, 0), min(x1, W), min(y1, H)
         out = np.zeros((y1 - y0, x1 - x0, 3), np.uint8)
         out[ya - y0:yb - y0, xa - x0:xb - x0] = rgb[ya:yb, xa:xb]
-        return out, K
+        return out
     u, v = np.meshgrid(np.arange(x0, x1, dtype=np.float64), np.arange(y0, y1, dtype=np.float64))
     rays = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], -1).reshape(-1, 3)
     src, _ = cv2.projectPoints(rays, np.zeros(3), np.zeros(3), np.asarray(cam.K, np.float64),
                                np.asarray(cam.dist, np.float64))
     src = src.reshape(y1 - y0, x1 - x0, 2).astype(np.float32)
-    out = cv2.remap(rgb, src[..., 0], src[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
-    return out, K
+    return cv2.remap(rgb, src[..., 0], src[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
 
 
 def rope_at_full_resolution(rgb: np.ndarray, camera, cam_work, scale, rope) -> dict | None:
@@ -173,10 +172,10 @@ def rope_at_full_resolution(rgb: np.ndarray, camera, cam_work, scale, rope) -> d
     T = float(rope.thickness_px) / sx
     L = float(np.linalg.norm(P[-1] - P[0]))
     mx, my = 0.35 * L + 4 * T + 8, max(10 * T, 0.25 * L, 24.0)
-    box = (P[:, 0].min() - mx, P[:, 1].min() - my, P[:, 0].max() + mx, P[:, 1].max() + my)
-    crop, _ = _full_res_crop(rgb, camera, cam_work, scale, box)
+    box = tuple(int(round(v)) for v in (P[:, 0].min() - mx, P[:, 1].min() - my,
+                                        P[:, 0].max() + mx, P[:, 1].max() + my))
+    crop = _full_res_crop(rgb, camera, cam_work, scale, box)
     c = (np.asarray(rope.center_xy, np.float64) + 0.5) / (sx, sy) - 0.5 - (box[0], box[1])
-    c = c - (round(box[0]) - box[0], round(box[1]) - box[1])
     det = detect_rope(crop, None, pick_xy=(float(c[0]), float(c[1])), min_score=-np.inf)
     if not det or np.hypot(*(np.asarray(det.center_xy) - c)) > max(3 * T, 0.15 * L) + 4:
         return None
@@ -436,19 +435,21 @@ def _measure(path, rgb, camera, pick_xy, want_cloud, want_debug, sess: Session, 
     rope_T = None if rope_flags else float(rope.thickness_px)
     rope_T_native = rope_T
     if rope_diameter_m and not rope_flags:
-        # the rope as a ruler: how clearly its mean profile stands out (faint ropes read too thick)
-        from .rope import rope_profile_fwhm
-        rope_contrast = rope_profile_fwhm(img, rope.polyline, rope.thickness_px)[1]
+        full = None
         if ROPE_FULL_RES:
             # a photo larger than the working image: its thickness read where the sensor has
             # all its pixels (a rope too thin to measure at 1600 px may not be at 4000)
             t_f = time.perf_counter()
             full = rope_at_full_resolution(rgb, camera, cam, (sx, sy), rope)
             tm["rope_full_res"] = 1000 * (time.perf_counter() - t_f)
-            if full is not None:
-                rope_T, rope_T_native = full["thickness_px"] * full["scale"], full["thickness_px"]
-                rope_contrast = full["contrast"]
-                flags_extra.append("rope_read_at_full_resolution")
+        if full is not None:
+            rope_T, rope_T_native = full["thickness_px"] * full["scale"], full["thickness_px"]
+            rope_contrast = full["contrast"]
+            flags_extra.append("rope_read_at_full_resolution")
+        else:
+            # the rope as a ruler: how clearly its mean profile stands out (faint ropes read too thick)
+            from .rope import rope_profile_fwhm
+            rope_contrast = rope_profile_fwhm(img, rope.polyline, rope.thickness_px)[1]
     edge_mask = tree_mask | band_mask
     ground = seg.semantic == 1
 

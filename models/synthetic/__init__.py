@@ -15,12 +15,49 @@ import numpy as np
 
 from .scene import BREAST_HEIGHT_M, Scene, sample_scene
 
-__all__ = ["generate_sample", "iter_samples", "sample_seed", "scene_meta", "BREAST_HEIGHT_M"]
+__all__ = ["generate_sample", "iter_samples", "sample_seed", "scene_meta", "stem_base_pixel", "BREAST_HEIGHT_M"]
 
 
 def sample_seed(seed: int, index: int) -> int:
     """Independent 63-bit seed of sample ``index`` in the dataset of base ``seed``."""
     return int(np.random.SeedSequence([int(seed), int(index)]).generate_state(2, np.uint64)[0] >> np.uint64(1))
+
+
+def stem_base_pixel(meta: dict, tree: dict, depth: np.ndarray | None = None, *, tolerance_m: float = 0.3):
+    """Where a stem of a sample record meets the ground in its photo: the front contact point.
+
+    Parameters
+    ----------
+    meta : sample record (``K``, ``dist``, ``R_world_from_cam``, ``t_world_from_cam``, ``width``,
+        ``height``).
+    tree : one entry of ``meta["trees"]`` (``position_world``, ``r_bh_m``).
+    depth : (H, W) ground-truth z-depth; when given, the point counts as visible only where the
+        depth there is within ``tolerance_m`` of the point's own depth.
+
+    Returns
+    -------
+    ``(xy, status)``: xy (2,) photo pixel (through the record's lens distortion; None when
+    outside the photo), status ``"visible"``, ``"occluded"`` or ``"outside"``.
+    """
+    import cv2
+    R = np.asarray(meta["R_world_from_cam"], float)
+    t = np.asarray(meta["t_world_from_cam"], float)
+    P = np.asarray(tree["position_world"], float).copy()
+    toward = t[:2] - P[:2]
+    P[:2] += toward / (np.linalg.norm(toward) + 1e-12) * float(tree["r_bh_m"])
+    pc = R.T @ (P - t)
+    if pc[2] <= 0.05:
+        return None, "outside"
+    uv, _ = cv2.projectPoints(pc[None], np.zeros(3), np.zeros(3), np.asarray(meta["K"], float),
+                              np.asarray(meta.get("dist") or np.zeros(5), float))
+    u, v = uv.reshape(2)
+    W, H = int(meta["width"]), int(meta["height"])
+    if not (0 <= u <= W - 1 and 0 <= v <= H - 1):
+        return None, "outside"
+    xy = np.array([u, v])
+    if depth is not None and abs(float(depth[int(round(v)), int(round(u))]) - pc[2]) > tolerance_m:
+        return xy, "occluded"
+    return xy, "visible"
 
 
 def scene_meta(scene: Scene, out: dict) -> dict:

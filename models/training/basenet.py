@@ -4,8 +4,8 @@ Examples (:func:`tree_strips`): for each stem of an undistorted ``dbh synth`` sa
 the photo at 1.3 m (the roped stem first), the strip of :func:`monodbh.models.runtime_base.stem_strip`
 is cut from the stem's axis point at 1.3 m, straight down its projected axis, scaled by its
 width there (``2 f r / z``). The label is the strip row of the stem's front ground contact
-(:func:`base_pixel`) when it is visible (the ground-truth depth there is the point's own, within
-0.3 m) and inside the strip, else the "no visible base" class. Training strips are cut with
+(:func:`monodbh.models.synthetic.stem_base_pixel`) when it is visible (the ground-truth depth
+there is the point's own, within 0.3 m) and inside the strip, else the "no visible base" class. Training strips are cut with
 the geometry jittered as the pipeline's stem edges err (mid-point 0.1 / 0.3 widths across /
 along, width 8 %, direction 2.5 deg), and photometric augmentation and mirror flips on top.
 
@@ -32,13 +32,14 @@ from torch.nn import functional as F
 from monodbh.models.modeling.registry import build
 from monodbh.models.runtime_base import (STRIP_H, STRIP_ROWS_PER_W, decode_base_logits, stem_strip,
                                          strip_feed)
+from monodbh.models.synthetic import stem_base_pixel
 from monodbh.models.training.common import (AugmentConfig, DataSource, make_source, photometric,
                                             register_calibration, register_eval, select_device,
                                             train_loop)
 from monodbh.models.training.depth import undistort_sample
 from monodbh.models.training.trees import stem_point_cam
 
-__all__ = ["BaseTrainConfig", "base_pixel", "tree_strips", "build_bank", "base_metrics", "train_basenet"]
+__all__ = ["BaseTrainConfig", "stem_geometry", "tree_strips", "build_bank", "base_metrics", "train_basenet"]
 
 #: a found base counts as right within this relative error of the rope-to-base span
 GOOD_REL = 0.05
@@ -85,33 +86,6 @@ def _project(K: np.ndarray, p: np.ndarray) -> np.ndarray:
     return np.array([K[0, 0] * p[0] / p[2] + K[0, 2], K[1, 1] * p[1] / p[2] + K[1, 2]])
 
 
-def base_pixel(meta: dict[str, Any], tree: dict[str, Any], depth: np.ndarray | None,
-               tolerance_m: float = 0.3) -> tuple[np.ndarray | None, str]:
-    """Front ground contact of ``tree`` in the undistorted photo: ``(xy, status)``.
-
-    ``status``: ``"visible"``, ``"occluded"`` (the depth there is not the point's, within
-    ``tolerance_m``) or ``"outside"`` (behind the camera or out of the photo); ``xy`` None
-    only for points behind the camera. The same point as :func:`monodbh.toolkit.gt.true_base_pixel`
-    (the roped stem) for any stem.
-    """
-    R = np.asarray(meta["R_world_from_cam"], float)
-    t = np.asarray(meta["t_world_from_cam"], float)
-    K = np.asarray(meta["K"], float)
-    P = np.asarray(tree["position_world"], float).copy()
-    toward = t[:2] - P[:2]
-    P[:2] += toward / (np.linalg.norm(toward) + 1e-12) * float(tree["r_bh_m"])
-    pc = R.T @ (P - t)
-    if pc[2] <= 0.05:
-        return None, "outside"
-    xy = _project(K, pc)
-    W, H = int(meta["width"]), int(meta["height"])
-    if not (0 <= xy[0] <= W - 1 and 0 <= xy[1] <= H - 1):
-        return xy, "outside"
-    if depth is not None and abs(float(depth[int(round(xy[1])), int(round(xy[0]))]) - pc[2]) > tolerance_m:
-        return xy, "occluded"
-    return xy, "visible"
-
-
 def stem_geometry(meta: dict[str, Any], tree: dict[str, Any]) -> tuple[np.ndarray, np.ndarray, float, float] | None:
     """``(top_xy, along, width_px, z_m)`` of a stem at 1.3 m in the undistorted photo, or None
     when its axis point there is behind the camera."""
@@ -152,8 +126,9 @@ def tree_strips(sample: dict[str, Any], rng: np.random.Generator | None, cfg: Ba
     roped = meta.get("roped_tree")
     trees = sorted(meta["trees"], key=lambda t: (t["id"] != roped, t.get("distance_m", 1e9)))
     out: list[dict[str, Any]] = []
+    n_trees = 0
     for tree in trees:
-        if len([o for o in out if o["jit"] == 0]) >= cfg.max_trees:
+        if n_trees >= cfg.max_trees:
             break
         g = stem_geometry(meta, tree)
         if g is None:
@@ -171,7 +146,8 @@ def tree_strips(sample: dict[str, Any], rng: np.random.Generator | None, cfg: Ba
                        and abs(float(depth[int(p[1]), int(p[0])]) - (z - float(tree["r_bh_m"]))) <= tol
                        for p in pts):
                 continue
-        bxy, status = base_pixel(meta, tree, depth)
+        bxy, status = stem_base_pixel(meta, tree, depth)
+        n_trees += 1
         if status == "visible":
             # ... and the base across the stem's front half
             for f in (-0.25, 0.25):
@@ -381,14 +357,20 @@ def train_basenet(run_dir: str, steps: int = 3000, data: Any = None, resume: boo
 # --------------------------------------------------------------------------- export hooks
 
 
+#: the last evaluation bank cut (``dbh export`` scores every int8 recipe on the same strips)
+_EVAL_BANK: dict[str, Any] = {}
+
+
 def _eval_bank(n: int, seed: int, data: DataSource | None) -> dict[str, np.ndarray]:
+    """Up to ``n`` exact strips of the last ``val_n`` samples of ``data`` (the held-out end of
+    the folder); unjittered, so ``seed`` does not change them."""
     if data is None:
         raise ValueError("basenet export needs data (the run's config.json names its folders)")
-    cfg = BaseTrainConfig()
-    m = data.n
-    idx = list(range(max(0, m - cfg.val_n), m))       # the held-out end of the folder
-    bank = build_bank(data, idx, cfg, seed, 0, verbose=False)
-    return {k: v[:n] for k, v in bank.items()}
+    if _EVAL_BANK.get("data") is not data or _EVAL_BANK.get("n") != data.n:
+        cfg = BaseTrainConfig()
+        idx = list(range(max(0, data.n - cfg.val_n), data.n))
+        _EVAL_BANK.update(data=data, n=data.n, bank=build_bank(data, idx, cfg, seed, 0, verbose=False))
+    return {k: v[:n] for k, v in _EVAL_BANK["bank"].items()}
 
 
 @register_calibration("basenet")
