@@ -142,3 +142,32 @@ def test_stem_evidence_resolves_two_alike_candidates():
     assert stem_evidence_choice(img, inst, [(100.0, cy), (cx, cy)]) == 1       # off any stem / the rope
     assert stem_evidence_choice(img, inst, [(cx, cy), (cx, cy - 80)]) == 0     # the rope / bare bark
     assert stem_evidence_choice(img, inst, [(cx, cy), (cx + 3, cy)]) is None   # both on the rope
+
+
+def _toy_stem_photo(rope: bool, seed: int = 0):
+    rng = np.random.default_rng(seed)
+    img = np.full((240, 320, 3), (196, 202, 208), np.float32)
+    img[:, 140:181] = (108, 122, 110)
+    img += rng.normal(0, 3, img.shape)
+    if rope:
+        img[120, 140:181] = (130, 104, 96)        # a faint rope, one pixel thick, on greenish bark
+    inst = np.zeros((240, 320), np.int32)
+    inst[10:230, 140:181] = 1
+    return np.clip(img, 0, 255).astype(np.uint8), inst
+
+
+def test_verifier_finds_a_faint_rope_and_nothing_on_a_bare_stem():
+    from monodbh.models.runtime import load_manifest
+    from monodbh.models.runtime_rope import RopeVerifier
+    from monodbh.toolkit.rope_stem import VERIFIER_MIN_LOGIT
+
+    if "ropenet" not in load_manifest().get("models", {}):
+        pytest.skip("no shipped rope verifier")
+    ver = RopeVerifier(threads=1)
+    img, inst = _toy_stem_photo(True)
+    det = detect_rope_on_stems(img, inst, verifier=ver)
+    assert det, det.reason
+    assert abs(det.center_xy[1] - 120) <= 2 and det.score > VERIFIER_MIN_LOGIT
+    img0, inst0 = _toy_stem_photo(False)
+    det0 = detect_rope_on_stems(img0, inst0, verifier=ver)
+    assert not det0 and "no red rope" in det0.reason

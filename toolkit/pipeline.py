@@ -72,6 +72,11 @@ class Session:
             from ..models.runtime_base import BaseFinder
             self.base = BaseFinder(mdir / models["basenet"]["file"], threads=threads, manifest=manifest,
                                    threshold=BASE_P_THRESHOLD)
+        # ... and so is the rope verifier (without it the stem search's logistic score decides)
+        self.rope_verifier = None
+        if models.get("ropenet") and (mdir / models["ropenet"]["file"]).exists():
+            from ..models.runtime_rope import RopeVerifier
+            self.rope_verifier = RopeVerifier(mdir / models["ropenet"]["file"], threads=threads, manifest=manifest)
         self.models_dir = mdir
         # the error model measured for exactly these networks (python -m monodbh.toolkit.error_model
         # FOLDER --write): per-source 1-sigma; stale (built-in defaults, flagged) after retraining
@@ -83,7 +88,8 @@ class Session:
         self.load_ms = 1000 * (time.perf_counter() - t0)
 
 
-#: the shipped networks the measured error model depends on (those shipped; basenet is optional)
+#: the shipped networks the measured error model depends on (those shipped; basenet is optional;
+#: the rope verifier only decides which photos are measured, not how well, so it is not one)
 ERROR_MODEL_KINDS = ("segmenter", "cden", "treenet", "basenet")
 
 
@@ -404,10 +410,13 @@ def _measure(path, rgb, camera, pick_xy, want_cloud, want_debug, sess: Session, 
         # a rope thinner than a pixel is no connected line: its red-ness averaged across the
         # segmented trunk's width still stands out (mask-guided search, toolkit/rope_stem.py)
         from .rope_stem import detect_rope_on_stems
-        alt = detect_rope_on_stems(img, seg.instance, pick_xy=pick, rope_candidates=rope.candidates)
+        alt = detect_rope_on_stems(img, seg.instance, pick_xy=pick, rope_candidates=rope.candidates,
+                                   verifier=sess.rope_verifier)
         if alt:
             rope, weak_refused = alt, False
             rope_flags.append("rope_from_stem_profile")
+            if sess.rope_verifier is not None and pick is None:
+                rope_flags.append("rope_verified_by_network")
         elif off_pick:
             # the nearest band is elsewhere: not what the user tapped
             px, py = pick_xy

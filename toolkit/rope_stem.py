@@ -31,7 +31,7 @@ import numpy as np
 
 from .rope import RopeCandidate, RopeDetection, redness_map
 
-__all__ = ["StemBand", "stem_bands", "trunk_like", "stem_evidence_choice", "band_features", "stem_band_score", "detect_rope_on_stems",
+__all__ = ["StemBand", "red_shift_map", "stem_bands", "trunk_like", "stem_evidence_choice", "band_features", "stem_band_score", "detect_rope_on_stems", "VERIFIER_PER_STEM", "VERIFIER_MIN_LOGIT", "VERIFIER_MARGIN",
            "STEM_WEIGHTS", "STEM_MIN_SCORE", "STEM_PICK_MIN_SCORE"]
 
 
@@ -165,10 +165,39 @@ def stem_band_score(features: dict, weights: dict | None = None) -> float:
     return float(w.get("bias", 0.0) + sum(w[k] * features[k] for k in w if k != "bias"))
 
 
+def red_shift_map(rgb: np.ndarray, offset: float = 30.0) -> np.ndarray:
+    """Unclipped red chromaticity ``(R - max(G, B) - max(G - B, 0) / 2) / (R + G + B + offset)``.
+
+    :func:`.rope.redness_map` without its clip at 0: negative on green, grey and blue pixels, so
+    a rope thinner than a pixel still raises the mean of its row on a greenish or hazy trunk
+    (where the clipped map is 0 on the rope and on the bark alike).
+
+    Parameters
+    ----------
+    rgb : (H, W, 3) uint8 RGB.
+    offset : damps the noisy chromaticity of dark pixels.
+
+    Returns
+    -------
+    (H, W) float32 in (-1, 1).
+
+    Examples
+    --------
+    >>> px = np.array([[[111, 127, 113], [105, 106, 95]]], np.uint8)   # bark, rope row
+    >>> m = red_shift_map(px)
+    >>> bool(m[0, 1] > m[0, 0]), float(redness_map(px).max())
+    (True, 0.0)
+    """
+    f = np.asarray(rgb, np.float32)
+    R, G, B = f[..., 0], f[..., 1], f[..., 2]
+    num = R - np.maximum(G, B) - 0.5 * np.maximum(G - B, 0.0)
+    return num / (R + G + B + float(offset))
+
+
 def stem_bands(rgb: np.ndarray, instance: np.ndarray, *, tilts_deg=tuple(range(-15, 16, 3)),
                min_pixels: int = 150, min_width_px: int = 5, per_stem: int = 2, border_px: int = 8,
                rope_candidates: list | None = None, near_xy=None, near_px: float = 8.0,
-               weights: dict | None = None) -> list[StemBand]:
+               weights: dict | None = None, unclipped_red: bool = False) -> list[StemBand]:
     """Rope hypotheses on every segmented stem, best first.
 
     Parameters
@@ -185,6 +214,9 @@ def stem_bands(rgb: np.ndarray, instance: np.ndarray, *, tilts_deg=tuple(range(-
     near_xy : (x, y): only the stem under this point (or the nearest one within 3 % of the
         photo's width), and only rows within ``near_px`` of it (a user's tap on the rope).
     weights : override :data:`STEM_WEIGHTS`.
+    unclipped_red : read the rows' mean of :func:`red_shift_map` instead of the clipped
+        :func:`.rope.redness_map` (the rope verifier's search; :data:`STEM_WEIGHTS` were fitted
+        on the clipped one).
 
     Returns
     -------
@@ -198,7 +230,7 @@ def stem_bands(rgb: np.ndarray, instance: np.ndarray, *, tilts_deg=tuple(range(-
         raise ValueError(f"rgb must be (H, W, 3) uint8, got {rgb.shape} {rgb.dtype}")
     if instance.shape != rgb.shape[:2]:
         raise ValueError(f"instance {instance.shape} does not match the image {rgb.shape[:2]}")
-    F = redness_map(rgb)
+    F = red_shift_map(rgb) if unclipped_red else redness_map(rgb)
     H = rgb.shape[0]
     out: list[StemBand] = []
     objs = ndimage.find_objects(instance.astype(np.int32))
@@ -346,9 +378,36 @@ def stem_evidence_choice(rgb: np.ndarray, instance: np.ndarray, points, *, rope_
     return good[0]
 
 
+#: with the rope verifier (``monodbh.models.runtime_rope``): bands per stem it is shown (as in
+#: its training banks), the log-odds it needs, and the margin below the best within which a band
+#: on another stem makes the answer ambiguous. Set on the calibration sets (seeds 9100-9400,
+#: never used to train it): see ``docs/STATUS.md``, session 11.
+VERIFIER_PER_STEM = 4
+VERIFIER_MIN_LOGIT = 3.0
+VERIFIER_MARGIN = 1.0
+
+
+def _verified_bands(rgb, instance, rope_candidates, verifier) -> list[StemBand]:
+    """Trunk-like stem bands (unclipped red-ness) scored by the verifier's log-odds, best first;
+    the logistic score is kept in ``features["stem_score"]``."""
+    bands = [b for b in stem_bands(rgb, instance, rope_candidates=rope_candidates, per_stem=VERIFIER_PER_STEM,
+                                   unclipped_red=True) if trunk_like(b)]
+    masks: dict[int, np.ndarray] = {}
+    for b in bands:
+        if b.tree_id not in masks:
+            masks[b.tree_id] = instance == b.tree_id
+    z = verifier.logits(rgb, [masks[b.tree_id] for b in bands], bands)
+    for b, zi in zip(bands, z):
+        b.features["stem_score"] = b.score
+        b.score = float(zi)
+    bands.sort(key=lambda b: -b.score)
+    return bands
+
+
 def detect_rope_on_stems(rgb: np.ndarray, instance: np.ndarray, *, pick_xy=None, rope_candidates=None,
                          min_score: float = STEM_MIN_SCORE, pick_min_score: float = STEM_PICK_MIN_SCORE,
-                         ambiguity_margin: float = 1.0, weights: dict | None = None) -> RopeDetection:
+                         ambiguity_margin: float = 1.0, weights: dict | None = None,
+                         verifier=None) -> RopeDetection:
     """The rope as the best stem band (:func:`stem_bands`), in the form :func:`.rope.detect_rope` gives.
 
     Parameters
@@ -362,6 +421,9 @@ def detect_rope_on_stems(rgb: np.ndarray, instance: np.ndarray, *, pick_xy=None,
     pick_min_score : ... or above this one at a user's tap.
     ambiguity_margin : a band on another stem within this margin of the best makes the result
         ambiguous (``found=False``, ``ambiguous=True``).
+    verifier : optional :class:`monodbh.models.runtime_rope.RopeVerifier`: without a tap, the
+        bands are scored by it instead (log-odds above :data:`VERIFIER_MIN_LOGIT`, ambiguous
+        within :data:`VERIFIER_MARGIN`; ``score`` is then its log-odds).
 
     Returns
     -------
@@ -369,7 +431,11 @@ def detect_rope_on_stems(rgb: np.ndarray, instance: np.ndarray, *, pick_xy=None,
         falsy with a reason when no band qualifies. ``thickness_px`` is 1 (the rope is thinner
         than the profile can resolve), ``mask`` the band's row across the stem.
     """
-    bands = stem_bands(rgb, instance, weights=weights, rope_candidates=rope_candidates, near_xy=pick_xy)
+    if verifier is not None and pick_xy is None:
+        bands = _verified_bands(rgb, instance, rope_candidates, verifier)
+        min_score, ambiguity_margin = VERIFIER_MIN_LOGIT, VERIFIER_MARGIN
+    else:
+        bands = stem_bands(rgb, instance, weights=weights, rope_candidates=rope_candidates, near_xy=pick_xy)
     cands = [RopeCandidate(center_xy=b.center_xy, direction=b.direction,
                            length_px=float(np.linalg.norm(b.polyline[1] - b.polyline[0])), thickness_px=1.0,
                            score=b.score, contrast=b.contrast, polyline=b.polyline, features=b.features)

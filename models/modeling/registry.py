@@ -182,6 +182,7 @@ KIND_MODULES: dict[str, str] = {
     "cden": "monodbh.models.modeling.cden",
     "treenet": "monodbh.models.modeling.treenet",
     "basenet": "monodbh.models.modeling.basenet",
+    "ropenet": "monodbh.models.modeling.ropenet",
 }
 
 

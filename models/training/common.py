@@ -47,7 +47,7 @@ import torch
 
 __all__ = [
     "seed_everything", "rng_state", "set_rng_state", "select_device", "RunDir", "train_loop",
-    "batch_indices", "sample_rng", "DataSource", "FolderSource", "GeneratorSource", "ListSource",
+    "batch_indices", "sample_rng", "DataSource", "BankSource", "FolderSource", "GeneratorSource", "ListSource",
     "make_source", "source_from_config", "AugmentConfig", "AUGMENT_PRESETS", "photometric", "geometric", "augment",
     "resize_sample", "SPATIAL_KEYS", "TRAINING_MODULES", "register_calibration",
     "calibration_inputs", "register_eval", "evaluate_kind", "load_run_model", "atomic_torch_save", "pack_weights", "load_packed_weights",
@@ -573,9 +573,50 @@ class GeneratorSource(DataSource):
                 "opts": self.opts, "pool": self.pool}
 
 
+class BankSource(DataSource):
+    """Examples already cut into ``.npz`` banks (the rope verifier's, see
+    ``monodbh.toolkit.fit_rope_stem.collect_patches``), concatenated in listed order.
+
+    ``arrays`` holds every array of the banks (first axis: the example); ``n`` counts examples.
+    """
+
+    def __init__(self, paths: str | os.PathLike | Sequence[str | os.PathLike]) -> None:
+        if isinstance(paths, (str, os.PathLike)):
+            paths = [paths]
+        self.paths = [Path(p) for p in paths]
+        parts = []
+        for p in self.paths:
+            if not p.is_file():
+                raise FileNotFoundError(f"{p}: example bank not found")
+            with np.load(p) as z:
+                parts.append({k: z[k] for k in z.files})
+        keys = set(parts[0])
+        for k, p in enumerate(parts):
+            if set(p) != keys:
+                raise ValueError(f"{self.paths[k]}: bank arrays {sorted(p)} differ from {sorted(keys)}")
+            p["bank"] = np.full(len(p["label"]) if "label" in p else len(next(iter(p.values()))), k, np.int64)
+        self.arrays = {key: np.concatenate([p[key] for p in parts]) for key in parts[0]}
+        self._n = len(self.arrays["bank"])
+
+    def __len__(self) -> int:
+        return self._n
+
+    @property
+    def n(self) -> int:
+        return self._n
+
+    def get(self, index: int) -> dict[str, Any]:
+        return {k: v[index % self._n] for k, v in self.arrays.items()}
+
+    def config(self) -> dict[str, Any]:
+        return {"type": "banks", "paths": [str(p.resolve()) for p in self.paths]}
+
+
 def source_from_config(cfg: dict[str, Any]) -> DataSource:
     """Inverse of :meth:`DataSource.config` (``"list"`` sources cannot be rebuilt)."""
     t = cfg.get("type")
+    if t == "banks":
+        return BankSource(cfg["paths"])
     if t == "folders":
         return FolderSource(cfg["folders"], cache=cfg.get("cache", 0))
     if t == "generator":
@@ -589,7 +630,7 @@ def make_source(data: Any, *, default_seed: int = 0,
     """Build a :class:`DataSource` from a flexible value.
 
     Accepted: a ``DataSource``; a list of sample dicts; a folder path or list of folder paths;
-    a config dict (:func:`source_from_config`); the string ``"gen"`` / ``"gen:SEED"`` /
+    a config dict (:func:`source_from_config`); ``.npz`` example bank path(s) (:class:`BankSource`); the string ``"gen"`` / ``"gen:SEED"`` /
     ``"gen:SEED:POOL"`` (generator at ``size``).
     """
     if isinstance(data, DataSource):
@@ -603,6 +644,9 @@ def make_source(data: Any, *, default_seed: int = 0,
         return GeneratorSource(seed, size, pool=pool)
     if isinstance(data, (list, tuple)) and data and isinstance(data[0], dict):
         return ListSource(data)
+    items = [data] if isinstance(data, (str, os.PathLike)) else data
+    if isinstance(items, (list, tuple)) and items and all(str(x).endswith(".npz") for x in items):
+        return BankSource(list(items))
     if isinstance(data, (str, os.PathLike, list, tuple)):
         return FolderSource(data)
     raise TypeError(f"cannot make a data source from {type(data).__name__}")
@@ -787,6 +831,7 @@ TRAINING_MODULES: dict[str, str] = {
     "cden": "monodbh.models.training.depth",
     "treenet": "monodbh.models.training.trees",
     "basenet": "monodbh.models.training.basenet",
+    "ropenet": "monodbh.models.training.ropenet",
 }
 _CALIB_HOOKS: dict[str, Callable[..., list[dict[str, np.ndarray]]]] = {}
 _EVAL_HOOKS: dict[str, Callable[..., dict[str, float]]] = {}
