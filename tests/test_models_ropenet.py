@@ -143,3 +143,22 @@ def test_shipped_rope_verifier_prefers_the_rope_row():
              for y in (60.0, 110.0)]
     z = ver.logits(img, [mask, mask], bands)
     assert z.shape == (2,) and z[0] > z[1]
+
+
+def test_collect_patches_labels_the_rope_row_of_a_rendered_scene(tmp_path):
+    pytest.importorskip("embreex")
+    from monodbh.models.synthetic import generate_sample
+    from monodbh.models.synthetic.io import write_sample
+    from monodbh.toolkit.fit_rope_stem import collect_patches
+
+    folder = tmp_path / "synth"
+    for i in range(2):
+        write_sample(folder, i, generate_sample(9000, i, (640, 480)))
+    out = tmp_path / "bank" / "b.npz"
+    arr = collect_patches(str(folder), str(out), verbose=False)
+    assert out.exists()
+    n = len(arr["label"])
+    assert n > 0 and arr["patch"].shape == (n, PATCH_H, PATCH_W, 3) and arr["side"].shape == (n, N_SIDE)
+    assert set(np.unique(arr["photo"])) <= {0, 1} and arr["label"].max() <= 1
+    # a labelled row lies on a roped photo
+    assert not (arr["label"].astype(bool) & ~arr["roped"]).any()

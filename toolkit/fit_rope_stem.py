@@ -150,6 +150,7 @@ def collect_patches(folder: str, out: str, session=None, per_stem: int = 4, long
     arr["side"] = arr["side"].astype(np.float32)
     arr["score"] = arr["score"].astype(np.float32)
     arr["label"] = arr["label"].astype(np.uint8)
+    os.makedirs(os.path.dirname(os.path.abspath(out)), exist_ok=True)
     np.savez(out, **arr)
     return arr
 
