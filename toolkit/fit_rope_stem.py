@@ -79,16 +79,13 @@ def collect(folders, session=None, long_side: int = 1600) -> list[dict]:
             js = fn[:-4] + ".json"
             uv = _rope_pixel(json.load(open(js))) if os.path.exists(js) else None
             for b in stem_bands(rgb, inst, rope_candidates=det.candidates):
-                lab = 0
-                if uv is not None:
-                    lab = int(abs(b.center_xy[1] - uv[1]) <= max(8, 0.2 * b.width_px)
-                              and abs(b.center_xy[0] - uv[0]) <= max(8, b.width_px))
                 rows.append(dict(photo=fn, roped=uv is not None, found_by_band=bool(det) and not det.weak,
-                                 label=lab, trunk_like=trunk_like(b), **{k: b.features[k] for k in FEATURES}))
+                                 label=_on_rope(b, uv), trunk_like=trunk_like(b), **{k: b.features[k] for k in FEATURES}))
     return rows
 
 
 def _on_rope(b, uv) -> int:
+    """1 when band ``b`` lies on the rope centre ``uv`` (see the module docstring), else 0."""
     return int(uv is not None and abs(b.center_xy[1] - uv[1]) <= max(8, 0.2 * b.width_px)
                and abs(b.center_xy[0] - uv[0]) <= max(8, b.width_px))
 

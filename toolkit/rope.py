@@ -55,7 +55,7 @@ from typing import Callable
 import cv2
 import numpy as np
 
-__all__ = ["RopeDetection", "RopeCandidate", "detect_rope", "redness_map", "line_contrast", "rope_profile_fwhm", "SCORE_WEIGHTS"]
+__all__ = ["RopeDetection", "RopeCandidate", "detect_rope", "redness_map", "red_shift_map", "line_contrast", "rope_profile_fwhm", "SCORE_WEIGHTS"]
 
 
 @dataclass
@@ -146,10 +146,42 @@ class RopeDetection:
 
 # ----------------------------------------------------------------------------- low-level maps
 
+def red_shift_map(rgb: np.ndarray, offset: float = 30.0) -> np.ndarray:
+    """Unclipped red chromaticity ``(R - max(G, B) - max(G - B, 0) / 2) / (R + G + B + offset)``.
+
+    Negative on green, grey and blue pixels, so a rope thinner than a pixel still raises the
+    mean of its row on a greenish or hazy trunk, where :func:`redness_map` (this map clipped at
+    0) is 0 on the rope and on the bark alike (the stem search of ``rope_stem`` for the rope
+    verifier).
+
+    Parameters
+    ----------
+    rgb : (H, W, 3) uint8 RGB.
+    offset : damps the noisy chromaticity of dark pixels.
+
+    Returns
+    -------
+    (H, W) float32 in (-1, 1).
+
+    Examples
+    --------
+    >>> px = np.array([[[111, 127, 113], [105, 106, 95]]], np.uint8)   # bark, rope row
+    >>> m = red_shift_map(px)
+    >>> bool(m[0, 1] > m[0, 0]), float(redness_map(px).max())
+    (True, 0.0)
+    """
+    R, G, B = cv2.split(rgb)
+    num = cv2.subtract(R, cv2.max(G, B), dtype=cv2.CV_32F)              # signed
+    num = cv2.addWeighted(num, 1.0, cv2.subtract(G, B), -0.5, 0.0, dtype=cv2.CV_32F)   # G - B saturates at 0
+    den = cv2.add(cv2.addWeighted(R, 1.0, G, 1.0, float(offset), dtype=cv2.CV_32F), B, dtype=cv2.CV_32F)
+    return cv2.divide(num, den)
+
+
 def redness_map(rgb: np.ndarray, offset: float = 30.0) -> np.ndarray:
     """Red chromaticity ``max(0, R - max(G, B) - max(G - B, 0) / 2) / (R + G + B + offset)``.
 
-    Clipped at 0 so that a grey band between green leaves is no "redder" than its neighbours.
+    :func:`red_shift_map` clipped at 0, so that a grey band between green leaves is no "redder"
+    than its neighbours.
 
     Parameters
     ----------
@@ -160,11 +192,7 @@ def redness_map(rgb: np.ndarray, offset: float = 30.0) -> np.ndarray:
     -------
     (H, W) float32 in [0, 1).
     """
-    R, G, B = cv2.split(rgb)
-    num = cv2.subtract(R, cv2.max(G, B))                       # uint8, saturates at 0
-    num = cv2.addWeighted(num, 1.0, cv2.subtract(G, B), -0.5, 0.0, dtype=cv2.CV_32F)
-    den = cv2.add(cv2.addWeighted(R, 1.0, G, 1.0, float(offset), dtype=cv2.CV_32F), B, dtype=cv2.CV_32F)
-    return cv2.max(cv2.divide(num, den), 0.0)
+    return np.maximum(red_shift_map(rgb, offset), 0.0)
 
 
 def line_contrast(F: np.ndarray, ds: tuple[int, ...] = (2, 3), sigma_x: float = 2.0,

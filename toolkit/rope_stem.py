@@ -29,9 +29,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .rope import RopeCandidate, RopeDetection, redness_map
+from .rope import RopeCandidate, RopeDetection, red_shift_map, redness_map
 
-__all__ = ["StemBand", "red_shift_map", "stem_bands", "trunk_like", "stem_evidence_choice", "band_features", "stem_band_score", "detect_rope_on_stems", "VERIFIER_PER_STEM", "VERIFIER_MIN_LOGIT", "VERIFIER_MARGIN",
+__all__ = ["StemBand", "stem_bands", "trunk_like", "stem_evidence_choice", "band_features", "stem_band_score", "detect_rope_on_stems", "VERIFIER_PER_STEM", "VERIFIER_MIN_LOGIT", "VERIFIER_MARGIN",
            "STEM_WEIGHTS", "STEM_MIN_SCORE", "STEM_PICK_MIN_SCORE"]
 
 
@@ -165,35 +165,6 @@ def stem_band_score(features: dict, weights: dict | None = None) -> float:
     return float(w.get("bias", 0.0) + sum(w[k] * features[k] for k in w if k != "bias"))
 
 
-def red_shift_map(rgb: np.ndarray, offset: float = 30.0) -> np.ndarray:
-    """Unclipped red chromaticity ``(R - max(G, B) - max(G - B, 0) / 2) / (R + G + B + offset)``.
-
-    :func:`.rope.redness_map` without its clip at 0: negative on green, grey and blue pixels, so
-    a rope thinner than a pixel still raises the mean of its row on a greenish or hazy trunk
-    (where the clipped map is 0 on the rope and on the bark alike).
-
-    Parameters
-    ----------
-    rgb : (H, W, 3) uint8 RGB.
-    offset : damps the noisy chromaticity of dark pixels.
-
-    Returns
-    -------
-    (H, W) float32 in (-1, 1).
-
-    Examples
-    --------
-    >>> px = np.array([[[111, 127, 113], [105, 106, 95]]], np.uint8)   # bark, rope row
-    >>> m = red_shift_map(px)
-    >>> bool(m[0, 1] > m[0, 0]), float(redness_map(px).max())
-    (True, 0.0)
-    """
-    f = np.asarray(rgb, np.float32)
-    R, G, B = f[..., 0], f[..., 1], f[..., 2]
-    num = R - np.maximum(G, B) - 0.5 * np.maximum(G - B, 0.0)
-    return num / (R + G + B + float(offset))
-
-
 def stem_bands(rgb: np.ndarray, instance: np.ndarray, *, tilts_deg=tuple(range(-15, 16, 3)),
                min_pixels: int = 150, min_width_px: int = 5, per_stem: int = 2, border_px: int = 8,
                rope_candidates: list | None = None, near_xy=None, near_px: float = 8.0,
@@ -214,7 +185,7 @@ def stem_bands(rgb: np.ndarray, instance: np.ndarray, *, tilts_deg=tuple(range(-
     near_xy : (x, y): only the stem under this point (or the nearest one within 3 % of the
         photo's width), and only rows within ``near_px`` of it (a user's tap on the rope).
     weights : override :data:`STEM_WEIGHTS`.
-    unclipped_red : read the rows' mean of :func:`red_shift_map` instead of the clipped
+    unclipped_red : read the rows' mean of :func:`.rope.red_shift_map` instead of the clipped
         :func:`.rope.redness_map` (the rope verifier's search; :data:`STEM_WEIGHTS` were fitted
         on the clipped one).
 

@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, field
 from typing import Any, Callable
 
 import numpy as np
@@ -33,8 +33,8 @@ from monodbh.models.modeling.registry import build
 from monodbh.models.runtime_base import (STRIP_H, STRIP_ROWS_PER_W, decode_base_logits, stem_strip,
                                          strip_feed)
 from monodbh.models.synthetic import stem_base_pixel
-from monodbh.models.training.common import (AugmentConfig, DataSource, make_source, photometric,
-                                            register_calibration, register_eval, select_device,
+from monodbh.models.training.common import (AugmentConfig, DataSource, config_from_dict, make_source,
+                                            photometric, register_calibration, register_eval, select_device,
                                             train_loop)
 from monodbh.models.training.depth import undistort_sample
 from monodbh.models.training.trees import stem_point_cam
@@ -72,11 +72,7 @@ class BaseTrainConfig:
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> "BaseTrainConfig":
-        names = {f.name for f in fields(cls)}
-        unknown = set(d) - names
-        if unknown:
-            raise ValueError(f"unknown basenet training options {sorted(unknown)}")
-        return cls(**d)
+        return config_from_dict(cls, d, "basenet")
 
 
 # --------------------------------------------------------------------------- ground truth

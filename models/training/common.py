@@ -37,7 +37,7 @@ import os
 import random
 import tempfile
 from collections import OrderedDict
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 from typing import Any, Callable, Iterable, Sequence
 
@@ -48,7 +48,7 @@ import torch
 __all__ = [
     "seed_everything", "rng_state", "set_rng_state", "select_device", "RunDir", "train_loop",
     "batch_indices", "sample_rng", "DataSource", "BankSource", "FolderSource", "GeneratorSource", "ListSource",
-    "make_source", "source_from_config", "AugmentConfig", "AUGMENT_PRESETS", "photometric", "geometric", "augment",
+    "make_source", "source_from_config", "config_from_dict", "AugmentConfig", "AUGMENT_PRESETS", "photometric", "geometric", "augment",
     "resize_sample", "SPATIAL_KEYS", "TRAINING_MODULES", "register_calibration",
     "calibration_inputs", "register_eval", "evaluate_kind", "load_run_model", "atomic_torch_save", "pack_weights", "load_packed_weights",
     "atomic_write_text",
@@ -571,6 +571,15 @@ class GeneratorSource(DataSource):
     def config(self) -> dict[str, Any]:
         return {"type": "generator", "seed": self.seed, "size": list(self.size),
                 "opts": self.opts, "pool": self.pool}
+
+
+def config_from_dict(cls: type, d: dict[str, Any], what: str) -> Any:
+    """``cls(**d)`` for a training-config dataclass, refusing unknown keys (ValueError naming
+    ``what``, e.g. ``"basenet"``)."""
+    unknown = set(d) - {f.name for f in fields(cls)}
+    if unknown:
+        raise ValueError(f"unknown {what} training options {sorted(unknown)}")
+    return cls(**d)
 
 
 class BankSource(DataSource):

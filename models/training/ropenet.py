@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, field
 from typing import Any, Callable
 
 import numpy as np
@@ -25,8 +25,9 @@ from torch.nn import functional as F
 
 from monodbh.models.modeling.registry import build
 from monodbh.models.runtime_rope import patch_feed
-from monodbh.models.training.common import (AugmentConfig, BankSource, DataSource, make_source, photometric,
-                                            register_calibration, register_eval, select_device, train_loop)
+from monodbh.models.training.common import (AugmentConfig, BankSource, DataSource, config_from_dict, make_source,
+                                            photometric, register_calibration, register_eval, select_device,
+                                            train_loop)
 
 __all__ = ["RopeTrainConfig", "rope_metrics", "train_ropenet"]
 
@@ -52,11 +53,7 @@ class RopeTrainConfig:
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> "RopeTrainConfig":
-        names = {f.name for f in fields(cls)}
-        unknown = set(d) - names
-        if unknown:
-            raise ValueError(f"unknown ropenet training options {sorted(unknown)}")
-        return cls(**d)
+        return config_from_dict(cls, d, "ropenet")
 
 
 # --------------------------------------------------------------------------- metrics
