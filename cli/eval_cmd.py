@@ -211,6 +211,18 @@ def _simulated_tap(stem: Path, meta: dict, noise_px: float, index: int):
     return None if xy is None else (max(xy[0], 0.0), max(xy[1], 0.0))
 
 
+def _simulated_rope_tap(stem: Path, meta: dict, noise_px: float, index: int):
+    """The middle of the rope's visible pixels plus seeded noise, else None (no rope in view)."""
+    import numpy as np
+
+    from monodbh.toolkit.gt import simulated_rope_tap
+
+    if not meta.get("roped_tree"):
+        return None
+    with np.load(stem.with_suffix(".npz")) as z:
+        return simulated_rope_tap(z["rope"], noise_px, index)
+
+
 def evaluate(
     folder: Path = typer.Argument(..., help="Dataset folder written by dbh synth.", show_default=False),
     limit: Optional[int] = typer.Option(None, "--limit", "-n", min=1, help="Evaluate the first N samples.",
@@ -224,6 +236,9 @@ def evaluate(
                                   "base pixel plus Gaussian noise of --tap-noise-px."),
     tap_noise_px: float = typer.Option(3.0, "--tap-noise-px", min=0.0, help="1-sigma of the simulated "
                                        "tap, in pixels per axis (seeded per sample)."),
+    tap_rope: bool = typer.Option(False, "--tap-rope", help="Simulate a user who taps the rope (dbh "
+                                  "measure --pick) in every photo where it is visible: the middle of its "
+                                  "visible pixels plus Gaussian noise of --tap-noise-px."),
     rope_known: bool = typer.Option(False, "--rope-known", help="Simulate a user who gives the rope's "
                                     "diameter (dbh measure --rope-mm): each sample's true rope diameter."),
     workers: int = typer.Option(1, "--workers", "-j", min=1, help="Processes measuring in parallel."),
@@ -248,7 +263,7 @@ def evaluate(
 
     if not folder.is_dir():
         raise fail(f"{folder}: no such folder", 2)
-    need_npz = gt_perception or tap_base
+    need_npz = gt_perception or tap_base or tap_rope
     idx = list_synth_samples(folder, need_npz=need_npz)
     if limit:
         idx = idx[:limit]
@@ -265,8 +280,10 @@ def evaluate(
             raise fail(f"{stem.with_suffix('.json')}: bad sample record ({type(exc).__name__}: {exc})")
         metas.append((i, gt))
         base_xy = _simulated_tap(stem, meta, tap_noise_px, i) if tap_base else None
+        pick_xy = _simulated_rope_tap(stem, meta, tap_noise_px, i) if tap_rope else None
         rope_m = true_rope_diameter_m(meta) if rope_known else None
-        jobs.append(Job(n, str(stem.with_suffix(".jpg")), cam, gt=(str(folder), i) if gt_perception else None,
+        jobs.append(Job(n, str(stem.with_suffix(".jpg")), cam, pick_xy=pick_xy,
+                        gt=(str(folder), i) if gt_perception else None,
                         base_xy=base_xy, rope_diameter_m=rope_m, out_dir=str(out_dir) if out_dir else None))
     backend = make_backend(measure_fn, session_factory, models_dir)
     if gt_perception:  # ground-truth perception needs no networks: run without models too
@@ -304,6 +321,8 @@ def evaluate(
         report = {"folder": str(folder), "gt_perception": gt_perception, "interrupted": interrupted,
                   "tap_base": ({"noise_px": tap_noise_px, "tapped": sum(j.base_xy is not None for j in jobs)}
                                if tap_base else None),
+                  "tap_rope": ({"noise_px": tap_noise_px, "tapped": sum(j.pick_xy is not None for j in jobs)}
+                               if tap_rope else None),
                   "rope_known": rope_known,
                   "metrics": m, "timings_ms": stages, "samples": records}
         atomic_write_text(json_out, json.dumps(report, indent=1, ensure_ascii=False) + "\n")

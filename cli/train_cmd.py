@@ -6,15 +6,15 @@ from typing import List, Optional
 
 import typer
 
-KINDS = {"segmenter": "segmenter", "depth": "cden", "trees": "treenet", "base": "basenet", "rope": "ropenet"}
+KINDS = {"segmenter": "segmenter", "depth": "cden", "trees": "treenet", "base": "basenet", "rope": "ropenet", "ropeseg": "ropeseg"}
 
 
 def train(
-    kind: str = typer.Argument(..., help="segmenter | depth | trees | base (the stem-base finder) | rope (the rope-band verifier)"),
+    kind: str = typer.Argument(..., help="segmenter | depth | trees | base (the stem-base finder) | rope (the rope-band verifier) | ropeseg (the mask-free rope finder)"),
     out: Path = typer.Option(..., "--out", "-o", help="Run folder (config.json, checkpoint.pt, log.jsonl)."),
     steps: int = typer.Option(20000, "--steps", min=1, help="Total optimiser steps."),
     resume: bool = typer.Option(False, "--resume", help="Continue from OUT/checkpoint.pt."),
-    data: Optional[List[Path]] = typer.Option(None, "--data", help="dbh synth folder(s) (rope: .npz banks of `python -m monodbh.toolkit.fit_rope_stem --bank`); default: render on the fly."),
+    data: Optional[List[Path]] = typer.Option(None, "--data", help="dbh synth folder(s) (rope: .npz banks of `python -m monodbh.toolkit.fit_rope_stem --bank`; ropeseg: of `python -m monodbh.models.training.ropeseg_bank`); default: render on the fly."),
     val: Optional[List[Path]] = typer.Option(None, "--val", help="Validation folder(s) (seeds never used in training)."),
     stop_at: Optional[int] = typer.Option(None, "--stop-at", help="Stop (checkpointed) after this many steps."),
     size: str = typer.Option("base", "--size", help="Model size: base | tiny | wide (cden/treenet: the wider first-run configs)."),
@@ -58,6 +58,9 @@ def train(
     elif kind == "rope":
         from monodbh.models.training.ropenet import train_ropenet
         res = train_ropenet(str(out), steps, data=d, resume=resume, val_data=v, stop_at=stop_at, **opts)
+    elif kind == "ropeseg":
+        from monodbh.models.training.ropeseg import train_ropeseg
+        res = train_ropeseg(str(out), steps, data=d, resume=resume, val_data=v, stop_at=stop_at, **opts)
     else:
         from monodbh.models.training.trees import train_trees
         res = train_trees(str(out), steps, data=d, resume=resume, val_data=v, stop_at=stop_at, **opts)

@@ -85,6 +85,32 @@ def test_eval_gt_perception_and_limit(synth_dir, tmp_path):
     assert m["samples"] == 2 and m["mae_cm"] == pytest.approx(0.0)
 
 
+def fake_pick_measure(path, camera, *, pick_xy=None, want_cloud=False, want_debug=False, session=None):
+    """Measures only at a tap on the rope, and only within 2 px of where the sample's rope is."""
+    meta = json.loads(Path(path).with_suffix(".json").read_text())
+    if pick_xy is None:
+        raise MonodbhError(f"{path}: no red rope found")
+    assert abs(pick_xy[0] - 20.0) < 2 and abs(pick_xy[1] - 10.0) < 2, pick_xy
+    true = meta["trees"][meta["roped_tree"] - 1]["dbh_m"] * 100
+    return MeasureResult(photo=path, dbh_cm=true, dbh_sigma_cm=1.0, distance_m=4.0)
+
+
+def test_eval_tap_rope_passes_the_rope_pixel_as_pick(synth_dir, tmp_path):
+    for i in (0, 1):                          # the roped samples get a visible rope
+        stem = synth_dir / f"{i:06d}"
+        with np.load(stem.with_suffix(".npz")) as z:
+            arr = {k: z[k] for k in z.files}
+        arr["rope"][10, 15:26] = True
+        np.savez(stem.with_suffix(".npz"), **arr)
+    rep = tmp_path / "report.json"
+    r = CliRunner().invoke(app, ["eval", str(synth_dir), "--tap-rope", "--tap-noise-px", "0.3", "--json", str(rep),
+                                 "--measure-fn", f"{MOD}:fake_pick_measure"])
+    assert r.exit_code == 0, r.output
+    d = json.loads(rep.read_text())
+    assert d["tap_rope"]["tapped"] == 2 and d["metrics"]["detection_rate"] == 1.0
+    assert d["metrics"]["mae_cm"] == pytest.approx(0.0) and d["metrics"]["false_measurements"] == 0
+
+
 def test_eval_metrics_detection_and_false_positive():
     recs = [{"gt_dbh_cm": 30.0, "dbh_cm": None, "dbh_sigma_cm": None, "error": "x: no rope", "photo": "x"},
             {"gt_dbh_cm": 20.0, "dbh_cm": 22.0, "dbh_sigma_cm": 1.5, "error": None},

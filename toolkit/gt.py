@@ -10,7 +10,7 @@ import numpy as np
 
 from .measure_core import Perception
 
-__all__ = ["perception_from_ground_truth", "true_base_pixel", "simulated_tap", "true_rope_diameter_m"]
+__all__ = ["perception_from_ground_truth", "true_base_pixel", "simulated_tap", "simulated_rope_tap", "true_rope_diameter_m"]
 
 
 def true_base_pixel(meta: dict, depth: np.ndarray | None = None, *, tolerance_m: float = 0.3):
@@ -59,6 +59,24 @@ def simulated_tap(meta: dict, depth: np.ndarray, noise_px: float, seed: int):
     if status != "visible":
         return None
     xy = xy + np.random.default_rng(seed).normal(0.0, noise_px, 2)
+    return float(xy[0]), float(xy[1])
+
+
+def simulated_rope_tap(rope: np.ndarray, noise_px: float, seed: int):
+    """A user's tap on the rope (``dbh measure --pick``), simulated for evaluation: the median of
+    the rope's visible pixels (``rope`` ``(H, W)`` bool, the sample's mask) plus Gaussian noise of
+    ``noise_px`` per axis (seeded by ``seed``), or None when no rope pixel is visible.
+
+    Examples
+    --------
+    >>> m = np.zeros((50, 80), bool); m[20, 10:31] = True
+    >>> simulated_rope_tap(m, 0.0, 0)
+    (20.0, 20.0)
+    """
+    ys, xs = np.nonzero(np.asarray(rope, bool))
+    if not len(xs):
+        return None
+    xy = np.array([np.median(xs), np.median(ys)], float) + np.random.default_rng([seed, 7]).normal(0.0, noise_px, 2)
     return float(xy[0]), float(xy[1])
 
 

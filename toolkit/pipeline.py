@@ -77,6 +77,11 @@ class Session:
         if models.get("ropenet") and (mdir / models["ropenet"]["file"]).exists():
             from ..models.runtime_rope import RopeVerifier
             self.rope_verifier = RopeVerifier(mdir / models["ropenet"]["file"], threads=threads, manifest=manifest)
+        # ... and the mask-free rope finder (run only where the other two find no rope)
+        self.rope_finder = None
+        if models.get("ropeseg") and (mdir / models["ropeseg"]["file"]).exists():
+            from ..models.runtime_ropeseg import RopeFinder
+            self.rope_finder = RopeFinder(mdir / models["ropeseg"]["file"], threads=threads, manifest=manifest)
         self.models_dir = mdir
         # the error model measured for exactly these networks (python -m monodbh.toolkit.error_model
         # FOLDER --write): per-source 1-sigma; stale (built-in defaults, flagged) after retraining
@@ -89,7 +94,8 @@ class Session:
 
 
 #: the shipped networks the measured error model depends on (those shipped; basenet is optional;
-#: the rope verifier only decides which photos are measured, not how well, so it is not one)
+#: the rope verifier and the rope finder only decide which photos are measured, not how well, so
+#: they are not among them)
 ERROR_MODEL_KINDS = ("segmenter", "cden", "treenet", "basenet")
 
 
@@ -401,6 +407,7 @@ def _measure(path, rgb, camera, pick_xy, want_cloud, want_debug, sess: Session, 
                 rope = detect_rope(img, None, pick_xy=top[k].center_xy)
     weak_refused = bool(rope) and rope.weak and not rope_across_trunk(rope, seg.instance, cell)
     rope_flags = []
+    pick_missed = False
     # at a user's tap, the band detector's nearest candidate is kept when it is near the tap and
     # rope-like; else the rope is searched on the tapped stem
     off_pick = (pick is not None and bool(rope)
@@ -418,9 +425,23 @@ def _measure(path, rgb, camera, pick_xy, want_cloud, want_debug, sess: Session, 
             if sess.rope_verifier is not None and pick is None:
                 rope_flags.append("rope_verified_by_network")
         elif off_pick:
-            # the nearest band is elsewhere: not what the user tapped
-            px, py = pick_xy
-            raise MonodbhError(f"{path}: no red rope found at the picked point ({px:.0f},{py:.0f})")
+            # the nearest band is elsewhere: not what the user tapped (unless the finder sees it)
+            pick_missed = True
+    if sess.rope_finder is not None and (pick_missed or (pick is None and (weak_refused or (not rope and not rope.ambiguous)))
+                                         or (pick is not None and not rope and not rope.ambiguous)):
+        # neither the band detector nor the mask-guided stem search: the mask-free rope finder
+        # (the segmenter may have missed or split the roped stem); at a tap, its candidate there
+        from .rope_finder import rope_from_finder
+        t_f = time.perf_counter()
+        alt = rope_from_finder(sess.rope_finder.components(img), (h, w), pick_xy=pick)
+        tm["rope_finder"] = 1000 * (time.perf_counter() - t_f)
+        if alt or (alt.ambiguous and pick is None):
+            rope, weak_refused, pick_missed = alt, False, False
+            if alt:
+                rope_flags.append("rope_found_by_network")
+    if pick_missed:
+        px, py = pick_xy
+        raise MonodbhError(f"{path}: no red rope found at the picked point ({px:.0f},{py:.0f})")
     tm["rope"] = 1000 * (time.perf_counter() - t)
     if weak_refused:
         x, y = rope.center_xy
@@ -494,7 +515,9 @@ def _measure(path, rgb, camera, pick_xy, want_cloud, want_debug, sess: Session, 
                       sigma_network=sess.sigma_network, rank_network=sess.rank_network,
                       distance_calibration=sess.distance_calibration,
                       base_xy=None if base_xy is None else _to_work_pixel(base_xy, (sx, sy), cw, cam),
-                      rope_length_px=None if rope_flags else _polyline_span(rope.polyline),
+                      # (the finder's band is the rope's own extent across the stem: it checks the width)
+                      rope_length_px=(None if rope_flags and "rope_found_by_network" not in rope_flags
+                                      else _polyline_span(rope.polyline)),
                       rope_band_mask=band_mask,
                       # (a rope found on the stem profile is thinner than a pixel: no ruler)
                       rope_thickness_px=rope_T, rope_thickness_native_px=rope_T_native,

@@ -183,6 +183,7 @@ KIND_MODULES: dict[str, str] = {
     "treenet": "monodbh.models.modeling.treenet",
     "basenet": "monodbh.models.modeling.basenet",
     "ropenet": "monodbh.models.modeling.ropenet",
+    "ropeseg": "monodbh.models.modeling.ropeseg",
 }
 
 

@@ -841,6 +841,7 @@ TRAINING_MODULES: dict[str, str] = {
     "treenet": "monodbh.models.training.trees",
     "basenet": "monodbh.models.training.basenet",
     "ropenet": "monodbh.models.training.ropenet",
+    "ropeseg": "monodbh.models.training.ropeseg",
 }
 _CALIB_HOOKS: dict[str, Callable[..., list[dict[str, np.ndarray]]]] = {}
 _EVAL_HOOKS: dict[str, Callable[..., dict[str, float]]] = {}

@@ -1,0 +1,46 @@
+"""The rope from the rope finder's candidates: acceptance, rivals, a tap, the band it returns."""
+import numpy as np
+
+from monodbh.models.runtime_ropeseg import rope_components
+from monodbh.toolkit.rope_finder import (FINDER_MIN_PEAK, FINDER_PICK_RADIUS_PX, band_shaped, distance_to_segment,
+                                         rope_from_finder)
+
+
+def _map(lines, shape=(200, 300), level=6.0):
+    z = np.full(shape, -8.0, np.float32)
+    for (r, c0, c1, lv) in lines:
+        z[r, c0:c1] = lv if lv is not None else level
+    return z
+
+
+def test_one_confident_band_is_the_rope():
+    z = _map([(50, 20, 60, None)])
+    det = rope_from_finder(rope_components(z), (400, 600))
+    assert det and det.score >= FINDER_MIN_PEAK
+    assert abs(det.center_xy[1] - 100.5) < 1 and abs(det.direction[1]) < 1e-6
+    assert det.polyline[0, 0] < det.polyline[-1, 0] and det.polyline[-1, 0] - det.polyline[0, 0] > 70
+    assert det.mask.shape == (400, 600) and det.mask.sum() >= 70
+
+
+def test_faint_blob_and_rival_are_refused():
+    assert not rope_from_finder(rope_components(_map([(50, 20, 60, 1.5)])), (400, 600))     # not confident
+    z = np.full((200, 300), -8.0, np.float32)
+    z[40:60, 40:60] = 8.0                                                                    # a blob
+    assert not rope_from_finder(rope_components(z), (400, 600))
+    assert not band_shaped(rope_components(z)[0])
+    two = rope_from_finder(rope_components(_map([(50, 20, 60, None), (150, 200, 235, None)])), (400, 600))
+    assert not two and two.ambiguous and "--pick" in two.reason
+    # a much weaker second band is no rival
+    one = rope_from_finder(rope_components(_map([(50, 20, 80, None), (150, 200, 212, None)])), (400, 600))
+    assert one and abs(one.center_xy[1] - 100.5) < 1
+
+
+def test_a_tap_chooses_among_rivals_and_accepts_fainter_bands():
+    comps = rope_components(_map([(50, 20, 60, None), (150, 200, 235, 2.0)]))
+    det = rope_from_finder(comps, (400, 600), pick_xy=(430.0, 303.0))
+    assert det and abs(det.center_xy[1] - 300.5) < 1
+    miss = rope_from_finder(comps, (400, 600), pick_xy=(300.0, 200.0))
+    assert not miss and "picked point" in miss.reason
+    c = comps[0]
+    assert distance_to_segment(c, c.center_xy) < 1e-6
+    assert abs(distance_to_segment(c, (c.center_xy[0], c.center_xy[1] + FINDER_PICK_RADIUS_PX)) - FINDER_PICK_RADIUS_PX) < 1e-3

@@ -1,0 +1,103 @@
+"""The rope from the mask-free rope finder's candidates; imported by the pipeline.
+
+The finder (``monodbh.models.runtime_ropeseg``, kind ``ropeseg``) marks rope pixels over the whole
+working image; its candidates are connected pieces of them (:class:`~monodbh.models.runtime_ropeseg.RopeComponent`).
+The pipeline asks it only where the band detector (:mod:`.rope`) and the mask-guided stem
+search (:mod:`.rope_stem`) found no rope. A candidate is the rope when it is confident
+(peak log-odds >= :data:`FINDER_MIN_PEAK` and summed probability >= :data:`FINDER_MIN_MASS`,
+about that many output pixels of 2 x 2 photo pixels), band-shaped (length >=
+:data:`FINDER_MIN_ELONGATION` thicknesses and >= :data:`FINDER_MIN_LENGTH_PX`), and no other
+candidate comes close (:data:`FINDER_RIVAL_SHARE` of its mass: two roped trees, or a rope and a
+red thing the finder cannot tell apart, then the user picks). Thresholds chosen on the
+calibration sets (seeds 9100-9600), see ``docs/STATUS.md``, session 12.
+
+Examples
+--------
+>>> from monodbh.models.runtime_ropeseg import rope_components
+>>> z = np.full((100, 100), -8.0, np.float32); z[50, 20:70] = 6.0
+>>> det = rope_from_finder(rope_components(z), (200, 200))
+>>> det.found, [round(v) for v in det.center_xy]
+(True, [90, 100])
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from .rope import RopeDetection
+
+__all__ = ["FINDER_MIN_PEAK", "FINDER_MIN_MASS", "FINDER_MIN_ELONGATION", "FINDER_MIN_LENGTH_PX",
+           "FINDER_RIVAL_SHARE", "FINDER_PICK_RADIUS_PX", "FINDER_PICK_MIN_PEAK", "FINDER_PICK_MIN_MASS", "band_shaped",
+           "distance_to_segment", "rope_from_finder"]
+
+FINDER_MIN_PEAK: float = 6.0
+FINDER_MIN_MASS: float = 6.0
+FINDER_MIN_ELONGATION: float = 3.0
+FINDER_MIN_LENGTH_PX: float = 6.0
+FINDER_RIVAL_SHARE: float = 0.5
+#: at a user's tap (``--pick``): a candidate passing within this many pixels of it, at lower
+#: confidence (the tap says where the rope is)
+FINDER_PICK_RADIUS_PX: float = 15.0
+FINDER_PICK_MIN_PEAK: float = 1.0
+FINDER_PICK_MIN_MASS: float = 2.0
+
+
+def band_shaped(c) -> bool:
+    """Is candidate ``c`` a band (long against its thickness, not a blob)?"""
+    return c.length_px >= FINDER_MIN_ELONGATION * c.thickness_px and c.length_px >= FINDER_MIN_LENGTH_PX
+
+
+def distance_to_segment(c, xy) -> float:
+    """Photo-pixel distance from ``xy`` to candidate ``c``'s centre line (its two end points)."""
+    a, b = np.asarray(c.polyline[0], float), np.asarray(c.polyline[-1], float)
+    p = np.asarray(xy, float)
+    d = b - a
+    t = float(np.clip((p - a) @ d / max(float(d @ d), 1e-9), 0.0, 1.0))
+    return float(np.hypot(*(p - a - t * d)))
+
+
+def rope_from_finder(components, shape: tuple[int, int], *, pick_xy=None, min_peak: float = FINDER_MIN_PEAK,
+                     min_mass: float = FINDER_MIN_MASS, rival_share: float = FINDER_RIVAL_SHARE) -> RopeDetection:
+    """The rope as :func:`.rope.detect_rope` gives it, from the finder's ``components`` (best first).
+
+    Parameters
+    ----------
+    components : list of RopeComponent, photo pixels of an image of ``shape`` = (H, W).
+    pick_xy : (x, y) a user's tap on the rope: the best candidate within
+        :data:`FINDER_PICK_RADIUS_PX` of it above the pick thresholds, no rival rule.
+    min_peak, min_mass, rival_share : the acceptance rule (module docstring).
+
+    Returns
+    -------
+    RopeDetection : found, or not (``ambiguous`` when two candidates qualify), with the reason.
+    """
+    H, W = shape
+    if pick_xy is not None:
+        good = [c for c in components if band_shaped(c) and c.peak >= FINDER_PICK_MIN_PEAK
+                and c.mass >= FINDER_PICK_MIN_MASS and distance_to_segment(c, pick_xy) <= FINDER_PICK_RADIUS_PX]
+        if not good:
+            return RopeDetection(False, f"no red rope found at the picked point ({pick_xy[0]:.0f},{pick_xy[1]:.0f})")
+        good.sort(key=lambda c: distance_to_segment(c, pick_xy))
+        best, rivals = good[0], []
+    else:
+        good = [c for c in components if band_shaped(c) and c.peak >= min_peak and c.mass >= min_mass]
+        if not good:
+            return RopeDetection(False, "no red rope found (no thin red band across a trunk)")
+        best = good[0]
+        rivals = [c for c in components if c is not best and band_shaped(c) and c.peak >= min_peak
+                  and c.mass >= rival_share * best.mass]
+    if rivals:
+        r = rivals[0]
+        return RopeDetection(False, f"two rope candidates at ({best.center_xy[0]:.0f},{best.center_xy[1]:.0f}) "
+                                    f"and ({r.center_xy[0]:.0f},{r.center_xy[1]:.0f}) (e.g. two roped trees): "
+                                    f"--pick X,Y to choose one", ambiguous=True)
+    poly = np.asarray(best.polyline, np.float32)
+    if poly[0, 0] > poly[-1, 0]:
+        poly = poly[::-1].copy()
+    n = max(2, int(np.ceil(np.hypot(*(poly[-1] - poly[0])))) + 1)
+    pts = poly[0] + np.linspace(0.0, 1.0, n)[:, None] * (poly[-1] - poly[0])
+    mask = np.zeros((H, W), bool)
+    xi, yi = np.floor(pts[:, 0] + 0.5).astype(int), np.floor(pts[:, 1] + 0.5).astype(int)
+    keep = (xi >= 0) & (xi < W) & (yi >= 0) & (yi < H)
+    mask[yi[keep], xi[keep]] = True
+    return RopeDetection(True, "", center_xy=best.center_xy, direction=best.direction, polyline=pts.astype(np.float32),
+                         thickness_px=float(best.thickness_px), mask=mask, score=float(best.peak))
