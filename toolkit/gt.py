@@ -63,9 +63,10 @@ def simulated_tap(meta: dict, depth: np.ndarray, noise_px: float, seed: int):
 
 
 def simulated_rope_tap(rope: np.ndarray, noise_px: float, seed: int):
-    """A user's tap on the rope (``dbh measure --pick``), simulated for evaluation: the median of
-    the rope's visible pixels (``rope`` ``(H, W)`` bool, the sample's mask) plus Gaussian noise of
-    ``noise_px`` per axis (seeded by ``seed``), or None when no rope pixel is visible.
+    """A user's tap on the rope (``dbh measure --pick``), simulated for evaluation: the rope's
+    visible pixel (``rope`` ``(H, W)`` bool, the sample's mask) nearest the median of them all (a
+    person taps on the rope, and a near rope is an arc whose median point lies off it) plus
+    Gaussian noise of ``noise_px`` per axis (seeded by ``seed``), or None when none is visible.
 
     Examples
     --------
@@ -76,7 +77,9 @@ def simulated_rope_tap(rope: np.ndarray, noise_px: float, seed: int):
     ys, xs = np.nonzero(np.asarray(rope, bool))
     if not len(xs):
         return None
-    xy = np.array([np.median(xs), np.median(ys)], float) + np.random.default_rng([seed, 7]).normal(0.0, noise_px, 2)
+    mx, my = np.median(xs), np.median(ys)
+    k = int(np.argmin((xs - mx) ** 2 + (ys - my) ** 2))
+    xy = np.array([xs[k], ys[k]], float) + np.random.default_rng([seed, 7]).normal(0.0, noise_px, 2)
     return float(xy[0]), float(xy[1])
 
 

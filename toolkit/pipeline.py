@@ -235,6 +235,13 @@ def _rope_band_mask(rope, shape: tuple[int, int], height_factor: float = 3.0) ->
     return m > 0
 
 
+def _dist_to_band(rope, xy) -> float:
+    """Pixels from ``xy`` to a found rope's centre line (its middle when it has none)."""
+    p = rope.polyline if rope.polyline is not None and len(rope.polyline) else np.asarray([rope.center_xy])
+    p = np.asarray(p, np.float64)
+    return float(np.min(np.hypot(p[:, 0] - xy[0], p[:, 1] - xy[1])))
+
+
 def _roped_instance(instance: np.ndarray, xy, radius: int = 6) -> int:
     H, W = instance.shape
     x, y = int(round(xy[0])), int(round(xy[1]))
@@ -410,8 +417,9 @@ def _measure(path, rgb, camera, pick_xy, want_cloud, want_debug, sess: Session, 
     pick_missed = False
     # at a user's tap, the band detector's nearest candidate is kept when it is near the tap and
     # rope-like; else the rope is searched on the tapped stem
-    off_pick = (pick is not None and bool(rope)
-                and np.hypot(rope.center_xy[0] - pick[0], rope.center_xy[1] - pick[1]) > max(15.0, 2 * cell))
+    # (near: the tap within 15 px or two mask cells of the band's centre line, which on a near stem
+    # runs far from its middle)
+    off_pick = (pick is not None and bool(rope) and _dist_to_band(rope, pick) > max(15.0, 2 * cell))
     if ((not rope and not rope.ambiguous) or weak_refused
             or (pick is not None and (not rope or off_pick or rope.score < ROPE_WEAK_SCORE))):
         # a rope thinner than a pixel is no connected line: its red-ness averaged across the
