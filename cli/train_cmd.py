@@ -19,6 +19,8 @@ def train(
     stop_at: Optional[int] = typer.Option(None, "--stop-at", help="Stop (checkpointed) after this many steps."),
     size: str = typer.Option("base", "--size", help="Model size: base | tiny | wide (cden/treenet: the wider first-run configs)."),
     batch_size: Optional[int] = typer.Option(None, "--batch-size"),
+    crop: Optional[int] = typer.Option(None, "--crop", help="ropeseg: training window side in pixels (even; "
+                                       "default 128, at most the bank's 192-pixel tiles)."),
     threads: Optional[int] = typer.Option(None, "--threads", help="CPU threads (default: all cores)."),
     init: Optional[Path] = typer.Option(None, "--init", exists=True, dir_okay=False,
                                         help="Warm start (new runs) from a shipped model, e.g. models/cden_int8.onnx, "
@@ -42,6 +44,10 @@ def train(
         opts["init_weights"] = str(init)
     if batch_size:
         opts["batch_size"] = batch_size
+    if crop is not None:
+        if kind != "ropeseg":
+            raise typer.BadParameter("only the rope finder (ropeseg) takes a window size", param_hint="--crop")
+        opts["crop"] = crop
     if threads:
         opts["threads"] = threads
     d = [str(p) for p in data] if data else None

@@ -21,3 +21,9 @@ def test_augment_presets_are_valid_configs():
     assert set(AUGMENT_PRESETS) >= {"default", "strong"}
     assert AUGMENT_PRESETS["default"] == AugmentConfig()
     assert AUGMENT_PRESETS["strong"].hue_deg > AugmentConfig().hue_deg
+
+
+def test_crop_is_for_the_rope_finder_only(tmp_path):
+    r = CliRunner().invoke(app, ["train", "rope", "--out", str(tmp_path / "r"), "--crop", "96"])
+    assert r.exit_code == 2 and "--crop" in r.output
+    assert not (tmp_path / "r").exists()

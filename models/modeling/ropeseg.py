@@ -38,11 +38,13 @@ class RopeSegConfig:
     c2: int = 16
     c4: int = 32
     c8: int = 48
+    c16: int = 0      #: > 0: a fourth level at 1/16 (dilated, a view of about 260 px)
 
 
 ROPESEG_CONFIGS: dict[str, RopeSegConfig] = {
     "base": RopeSegConfig(),
     "tiny": RopeSegConfig(c2=4, c4=8, c8=8),
+    "wide": RopeSegConfig(c16=64),
 }
 
 
@@ -61,6 +63,11 @@ class RopeSegNet(nn.Module):
         self.e2 = nn.Sequential(_cbr(3, c2, stride=2), _cbr(c2, c2))
         self.e4 = nn.Sequential(_cbr(c2, c4, stride=2), _cbr(c4, c4, dilation=2))
         self.e8 = nn.Sequential(_cbr(c4, c8, stride=2), _cbr(c8, c8, dilation=2), _cbr(c8, c8, dilation=4))
+        self.e16 = self.f8 = None
+        if cfg.c16:
+            self.e16 = nn.Sequential(_cbr(c8, cfg.c16, stride=2), _cbr(cfg.c16, cfg.c16, dilation=2),
+                                     _cbr(cfg.c16, cfg.c16, dilation=4))
+            self.f8 = nn.Sequential(_cbr(cfg.c16 + c8, c8, k=1), _cbr(c8, c8))
         self.f4 = nn.Sequential(_cbr(c8 + c4, c4, k=1), _cbr(c4, c4))
         self.f2 = nn.Sequential(_cbr(c4 + c2, c2, k=1), _cbr(c2, c2))
         self.head = nn.Conv2d(c2, 1, 1)
@@ -70,6 +77,8 @@ class RopeSegNet(nn.Module):
         x2 = self.e2(image)
         x4 = self.e4(x2)
         x8 = self.e8(x4)
+        if self.e16 is not None:
+            x8 = self.f8(torch.cat([F.interpolate(self.e16(x8), scale_factor=2.0, mode="nearest"), x8], 1))
         y4 = self.f4(torch.cat([F.interpolate(x8, scale_factor=2.0, mode="nearest"), x4], 1))
         y2 = self.f2(torch.cat([F.interpolate(y4, scale_factor=2.0, mode="nearest"), x2], 1))
         return self.head(y2)
