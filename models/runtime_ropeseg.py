@@ -123,9 +123,13 @@ def rope_components(logit: np.ndarray, stride: int = 2, lo: float = LOGIT_LO,
 
     pieces = {}
     for k in range(1, n):
-        ys, xs = np.nonzero(lab == k) if stats[k, cv2.CC_STAT_AREA] < 4000 else (None, None)
-        if ys is None:
+        if stats[k, cv2.CC_STAT_AREA] >= 4000:
             continue
+        # the piece's own bounding box, not the whole map, per piece
+        x0, y0, bw, bh = (int(stats[k, j]) for j in (cv2.CC_STAT_LEFT, cv2.CC_STAT_TOP,
+                                                       cv2.CC_STAT_WIDTH, cv2.CC_STAT_HEIGHT))
+        ys, xs = np.nonzero(lab[y0:y0 + bh, x0:x0 + bw] == k)
+        ys, xs = ys + y0, xs + x0
         cx, cy, d, ev = _moments(ys.astype(np.float64), xs.astype(np.float64), p[ys, xs].astype(np.float64))
         half = 2.0 * np.sqrt(max(ev[1], 0.0)) + 0.5
         pieces[k] = (ys, xs, np.array([cx, cy]), d, half)

@@ -35,7 +35,7 @@ from monodbh.models.runtime_base import (STRIP_H, STRIP_ROWS_PER_W, decode_base_
 from monodbh.models.synthetic import stem_base_pixel
 from monodbh.models.training.common import (AugmentConfig, DataSource, config_from_dict, make_source,
                                             photometric, register_calibration, register_eval, select_device,
-                                            train_loop)
+                                            train_loop, warmup_cosine)
 from monodbh.models.training.depth import undistort_sample
 from monodbh.models.training.trees import stem_point_cam
 
@@ -289,12 +289,7 @@ def train_basenet(run_dir: str, steps: int = 3000, data: Any = None, resume: boo
     model = build("basenet", cfg.size).to(device)
     opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
 
-    def lr_lambda(step: int) -> float:
-        if step < cfg.warmup_steps:
-            return (step + 1) / cfg.warmup_steps
-        return 0.5 * (1 + math.cos(math.pi * min(1.0, (step - cfg.warmup_steps) / max(1, steps - cfg.warmup_steps))))
-
-    sched = torch.optim.lr_scheduler.LambdaLR(opt, lr_lambda)
+    sched = warmup_cosine(opt, cfg.warmup_steps, steps)
     aug = AugmentConfig(**{**cfg.augment, "blur_sigma": tuple(cfg.augment.get("blur_sigma", (0.3, 1.2)))})
     N = len(bank["row"])
     draw_p = np.where(bank["roped"], cfg.roped_weight, 1.0)

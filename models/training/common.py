@@ -51,7 +51,7 @@ __all__ = [
     "make_source", "source_from_config", "config_from_dict", "AugmentConfig", "AUGMENT_PRESETS", "photometric", "geometric", "augment",
     "resize_sample", "SPATIAL_KEYS", "TRAINING_MODULES", "register_calibration",
     "calibration_inputs", "register_eval", "evaluate_kind", "load_run_model", "atomic_torch_save", "pack_weights", "load_packed_weights",
-    "atomic_write_text",
+    "atomic_write_text", "warmup_cosine", "binary_auc", "bank_source",
 ]
 
 # --------------------------------------------------------------------------- reproducibility
@@ -405,6 +405,36 @@ def train_loop(run_dir: str | os.PathLike, *, config: dict[str, Any], model: tor
 # --------------------------------------------------------------------------- deterministic data order
 
 
+def warmup_cosine(optimizer: torch.optim.Optimizer, warmup_steps: int,
+                  steps: int) -> torch.optim.lr_scheduler.LambdaLR:
+    """Linear warm-up over ``warmup_steps``, then a cosine decay to 0 at ``steps``."""
+    import math
+
+    def lr_lambda(step: int) -> float:
+        if step < warmup_steps:
+            return (step + 1) / warmup_steps
+        return 0.5 * (1 + math.cos(math.pi * min(1.0, (step - warmup_steps) / max(1, steps - warmup_steps))))
+
+    return torch.optim.lr_scheduler.LambdaLR(optimizer, lr_lambda)
+
+
+def binary_auc(z: np.ndarray, y: np.ndarray) -> float:
+    """ROC AUC of scores ``z`` (N,) for labels ``y`` (N,) (> 0 positive); NaN without both classes.
+
+    Examples
+    --------
+    >>> binary_auc(np.array([0.1, 0.9, 0.4]), np.array([0, 1, 0]))
+    1.0
+    """
+    pos, neg = z[y > 0], z[y == 0]
+    if not len(pos) or not len(neg):
+        return float("nan")
+    order = np.argsort(np.concatenate([pos, neg]), kind="stable")
+    ranks = np.empty(len(order))
+    ranks[order] = np.arange(1, len(order) + 1)
+    return float((ranks[:len(pos)].sum() - len(pos) * (len(pos) + 1) / 2) / (len(pos) * len(neg)))
+
+
 def batch_indices(step: int, batch_size: int, n: int | None, seed: int) -> list[int]:
     """Sample indices of training step ``step``: pure function of its arguments.
 
@@ -619,6 +649,20 @@ class BankSource(DataSource):
 
     def config(self) -> dict[str, Any]:
         return {"type": "banks", "paths": [str(p.resolve()) for p in self.paths]}
+
+
+def bank_source(data: Any, missing: str, wrong: str, key: str | None = None) -> BankSource:
+    """The :class:`BankSource` of ``data`` (``.npz`` paths) for a bank-trained kind.
+
+    Raises ``ValueError(missing)`` when ``data`` is None, and ``ValueError(wrong + ", got ...")``
+    when it is no bank (or a bank without the array ``key``).
+    """
+    if data is None:
+        raise ValueError(missing)
+    src = make_source(data)
+    if not isinstance(src, BankSource) or (key is not None and key not in src.arrays):
+        raise ValueError(f"{wrong}, got {src.config()}")
+    return src
 
 
 def source_from_config(cfg: dict[str, Any]) -> DataSource:

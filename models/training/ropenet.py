@@ -14,7 +14,6 @@ band the rope (``top1``)?
 """
 from __future__ import annotations
 
-import math
 import time
 from dataclasses import asdict, dataclass, field
 from typing import Any, Callable
@@ -25,9 +24,9 @@ from torch.nn import functional as F
 
 from monodbh.models.modeling.registry import build
 from monodbh.models.runtime_rope import patch_feed
-from monodbh.models.training.common import (AugmentConfig, BankSource, DataSource, config_from_dict, make_source,
-                                            photometric, register_calibration, register_eval, select_device,
-                                            train_loop)
+from monodbh.models.training.common import (AugmentConfig, BankSource, DataSource, bank_source, binary_auc,
+                                            config_from_dict, photometric, register_calibration, register_eval,
+                                            select_device, train_loop, warmup_cosine)
 
 __all__ = ["RopeTrainConfig", "rope_metrics", "train_ropenet"]
 
@@ -59,16 +58,6 @@ class RopeTrainConfig:
 # --------------------------------------------------------------------------- metrics
 
 
-def _auc(z: np.ndarray, y: np.ndarray) -> float:
-    pos, neg = z[y > 0], z[y == 0]
-    if not len(pos) or not len(neg):
-        return float("nan")
-    order = np.argsort(np.concatenate([pos, neg]), kind="stable")
-    ranks = np.empty(len(order))
-    ranks[order] = np.arange(1, len(order) + 1)
-    return float((ranks[:len(pos)].sum() - len(pos) * (len(pos) + 1) / 2) / (len(pos) * len(neg)))
-
-
 def rope_metrics(z: np.ndarray, bank: dict[str, np.ndarray]) -> dict[str, float]:
     """Band- and photo-level metrics of logits ``z`` (N,) on a bank's bands.
 
@@ -78,7 +67,7 @@ def rope_metrics(z: np.ndarray, bank: dict[str, np.ndarray]) -> dict[str, float]
     logit on rope-free photos (a threshold must lie above these).
     """
     y = bank["label"].astype(np.int64)
-    out = {"n": float(len(y)), "n_pos": float(y.sum()), "auc": _auc(z, y)}
+    out = {"n": float(len(y)), "n_pos": float(y.sum()), "auc": binary_auc(z, y)}
     key = bank["bank"] * 1_000_000 + bank["photo"]
     tl = bank["trunk_like"].astype(bool)
     top, n_missed, best_free = 0, 0, []
@@ -119,12 +108,8 @@ def _feed(bank: dict[str, np.ndarray], k: int, rng: np.random.Generator | None, 
 
 
 def _bank_source(data: Any) -> BankSource:
-    if data is None:
-        raise ValueError("dbh train rope needs --data (.npz banks of fit_rope_stem --bank)")
-    src = make_source(data)
-    if not isinstance(src, BankSource):
-        raise ValueError(f"dbh train rope: --data must be .npz example banks, got {src.config()}")
-    return src
+    return bank_source(data, "dbh train rope needs --data (.npz banks of fit_rope_stem --bank)",
+                       "dbh train rope: --data must be .npz example banks")
 
 
 def train_ropenet(run_dir: str, steps: int = 3000, data: Any = None, resume: bool = False, *,
@@ -171,12 +156,7 @@ def train_ropenet(run_dir: str, steps: int = 3000, data: Any = None, resume: boo
         model.side_std.copy_(torch.from_numpy(bank["side"].std(0) + 1e-3))
     opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
 
-    def lr_lambda(step: int) -> float:
-        if step < cfg.warmup_steps:
-            return (step + 1) / cfg.warmup_steps
-        return 0.5 * (1 + math.cos(math.pi * min(1.0, (step - cfg.warmup_steps) / max(1, steps - cfg.warmup_steps))))
-
-    sched = torch.optim.lr_scheduler.LambdaLR(opt, lr_lambda)
+    sched = warmup_cosine(opt, cfg.warmup_steps, steps)
     aug = AugmentConfig(**{**cfg.augment, "blur_sigma": tuple(cfg.augment.get("blur_sigma", (0.3, 0.8)))})
     timing = {"t": 0.0, "n": 0}
     n_pos = max(1, int(round(cfg.pos_frac * cfg.batch_size)))
@@ -255,4 +235,4 @@ def evaluate(predict: Callable[[dict[str, np.ndarray]], dict[str, np.ndarray]], 
     b = data.arrays
     z = np.array([float(predict({"patch": _feed(b, k, None, None)[None], "side": b["side"][k][None]})["logit"][0, 0])
                   for k in idx])
-    return {"auc": _auc(z, b["label"][idx].astype(np.int64)), "n": float(len(idx))}
+    return {"auc": binary_auc(z, b["label"][idx].astype(np.int64)), "n": float(len(idx))}

@@ -14,7 +14,6 @@ log-odds 0.
 """
 from __future__ import annotations
 
-import math
 import time
 from dataclasses import asdict, dataclass, field
 from typing import Any, Callable
@@ -26,10 +25,9 @@ from torch.nn import functional as F
 
 from monodbh.models.modeling.registry import build
 from monodbh.models.runtime_gan import normalize_rgb
-from monodbh.models.training.common import (AugmentConfig, BankSource, DataSource, config_from_dict, make_source,
-                                            photometric, register_calibration, register_eval, select_device,
-                                            train_loop)
-from monodbh.models.training.ropenet import _auc
+from monodbh.models.training.common import (AugmentConfig, BankSource, DataSource, bank_source, binary_auc,
+                                            config_from_dict, photometric, register_calibration, register_eval,
+                                            select_device, train_loop, warmup_cosine)
 
 __all__ = ["RopeSegTrainConfig", "tile_metrics", "train_ropeseg"]
 
@@ -63,11 +61,6 @@ class RopeSegTrainConfig:
         return config_from_dict(cls, d, "ropeseg")
 
 
-def tile_feed(rgb: np.ndarray) -> np.ndarray:
-    """``(T, T, 3)`` uint8 -> ``(3, T, T)`` float32, ImageNet-normalised (the runtime's feed)."""
-    return normalize_rgb(rgb)
-
-
 # --------------------------------------------------------------------------- metrics
 
 
@@ -82,7 +75,7 @@ def tile_metrics(z: np.ndarray, target: np.ndarray, border: int = EVAL_BORDER //
     zc, tc = z[:, b:-b, b:-b], target[:, b:-b, b:-b] > 0
     has = tc.reshape(len(tc), -1).any(1)
     out = {"n": float(len(z)), "n_rope_tiles": float(has.sum()),
-           "tile_auc": _auc(zc.reshape(len(zc), -1).max(1), has.astype(np.int64))}
+           "tile_auc": binary_auc(zc.reshape(len(zc), -1).max(1), has.astype(np.int64))}
     pred = zc > 0
     k = np.ones((3, 3), np.uint8)
     near = np.stack([cv2.dilate(t.astype(np.uint8), k) > 0 for t in tc])
@@ -123,16 +116,12 @@ def _window(bank: dict[str, np.ndarray], k: int, crop: int, rng: np.random.Gener
         rgb = photometric(rgb, rng, aug)
         if rng.random() < aug.hflip:
             rgb, t = rgb[:, ::-1], t[:, ::-1]
-    return tile_feed(np.ascontiguousarray(rgb)), np.ascontiguousarray(t)
+    return normalize_rgb(np.ascontiguousarray(rgb)), np.ascontiguousarray(t)
 
 
 def _bank_source(data: Any) -> BankSource:
-    if data is None:
-        raise ValueError("dbh train ropeseg needs --data (.npz banks of monodbh.models.training.ropeseg_bank)")
-    src = make_source(data)
-    if not isinstance(src, BankSource) or "target" not in src.arrays:
-        raise ValueError(f"dbh train ropeseg: --data must be rope-finder .npz banks, got {src.config()}")
-    return src
+    return bank_source(data, "dbh train ropeseg needs --data (.npz banks of monodbh.models.training.ropeseg_bank)",
+                       "dbh train ropeseg: --data must be rope-finder .npz banks", key="target")
 
 
 def pixel_loss(z: torch.Tensor, t: torch.Tensor, pos_weight: float) -> torch.Tensor:
@@ -186,12 +175,7 @@ def train_ropeseg(run_dir: str, steps: int = 3000, data: Any = None, resume: boo
     model = build("ropeseg", cfg.size).to(device)
     opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
 
-    def lr_lambda(step: int) -> float:
-        if step < cfg.warmup_steps:
-            return (step + 1) / cfg.warmup_steps
-        return 0.5 * (1 + math.cos(math.pi * min(1.0, (step - cfg.warmup_steps) / max(1, steps - cfg.warmup_steps))))
-
-    sched = torch.optim.lr_scheduler.LambdaLR(opt, lr_lambda)
+    sched = warmup_cosine(opt, cfg.warmup_steps, steps)
     aug = AugmentConfig(**{**cfg.augment, "blur_sigma": tuple(cfg.augment.get("blur_sigma", (0.3, 0.9)))})
     timing = {"t": 0.0, "n": 0}
     n_pos = max(1, int(round(cfg.pos_frac * cfg.batch_size)))
@@ -219,7 +203,7 @@ def train_ropeseg(run_dir: str, steps: int = 3000, data: Any = None, resume: boo
         model.eval()
         zs = []
         for k0 in range(0, len(b["target"]), 32):
-            x = torch.from_numpy(np.stack([tile_feed(r) for r in b["rgb"][k0:k0 + 32]])).to(device)
+            x = torch.from_numpy(np.stack([normalize_rgb(r) for r in b["rgb"][k0:k0 + 32]])).to(device)
             zs.append(model(x)[:, 0].cpu().numpy())
         model.train()
         return np.concatenate(zs)
@@ -279,7 +263,7 @@ def calibration_feeds(n: int, seed: int, spec: Any, data: DataSource | None = No
                       ) -> list[dict[str, np.ndarray]]:
     """``n`` feeds for int8 calibration: mosaics of 2 x 2 bank tiles at the graph's tile size."""
     b = data.arrays if isinstance(data, BankSource) else None
-    return [{"image": tile_feed(_mosaic(b, ks, _tile_of(spec))[0])[None]} for ks in _eval_tiles(n, seed, data)]
+    return [{"image": normalize_rgb(_mosaic(b, ks, _tile_of(spec))[0])[None]} for ks in _eval_tiles(n, seed, data)]
 
 
 @register_eval("ropeseg")
@@ -292,7 +276,7 @@ def evaluate(predict: Callable[[dict[str, np.ndarray]], dict[str, np.ndarray]], 
     zs, ts = [], []
     for ks in _eval_tiles(n, seed, data):
         img, tgt = _mosaic(b, ks, _tile_of(spec))
-        z = predict({"image": tile_feed(img)[None]})["logit"][0, 0]
+        z = predict({"image": normalize_rgb(img)[None]})["logit"][0, 0]
         for q in range(4):
             y, x = divmod(q, 2)
             if (y + 1) * T <= z.shape[0] and (x + 1) * T <= z.shape[1]:
