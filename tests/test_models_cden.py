@@ -83,6 +83,7 @@ def test_depth_example_letterbox_and_metrics():
     ex = depth_example(s, 64)
     assert ex["image"].shape == (3, 64, 64) and ex["mask"].shape == (1, 64, 64)
     assert not ex["valid"][0, :8].any() and not ex["valid"][0, -8:].any()   # letterbox pad
+    assert ex["tree"].shape == (1, 64, 64) and set(np.unique(ex["tree"])) <= {0.0, 1.0}
     assert math.isclose(ex["fx_net"], 0.8 * 64)
     m = depth_metrics(ex["depth"][0], ex["depth"][0], ex["valid"][0])
     assert m["absrel"] == 0.0 and m["delta1"] == 1.0 and m["ms_rmse"] == 0.0
@@ -90,6 +91,24 @@ def test_depth_example_letterbox_and_metrics():
     from monodbh.models.training.common import AugmentConfig
     ex2 = depth_example(s, 64, rng, AugmentConfig(crop_aspect=(1.0, 1.0)), 0.5, 1.0)
     assert ex2["code"].shape == (1, 64, 64) and np.all(np.abs(ex2["code"]) <= 1)
+
+
+def test_depth_losses_tree_weight():
+    from monodbh.models.training.depth import DepthTrainConfig, depth_losses
+
+    code = torch.zeros(1, 1, 4, 4)
+    t = torch.zeros(1, 1, 4, 4)
+    t[..., :2] = 1.0                                  # error 1 on the left half only
+    tree = torch.zeros(1, 1, 4, 4)
+    tree[..., :1] = 1.0                               # a "tree" inside the error half
+    b = {"code": code, "valid": torch.ones(1, 1, 4, 4, dtype=torch.bool), "tree": tree}
+    plain = DepthTrainConfig(lambda_silog=0, lambda_grad=0, lambda_l1=1.0)
+    weighted = DepthTrainConfig(lambda_silog=0, lambda_grad=0, lambda_l1=1.0, tree_weight=3.0)
+    lp, lw = depth_losses(t, b, plain), depth_losses(t, b, weighted)
+    assert math.isclose(float(lp["total"]), 0.5)
+    # weights: 4 tree pixels x 4, 12 others x 1: (4*4*1 + 4*1*1) / (16 + 12) = 20 / 28
+    assert math.isclose(float(lw["total"]), 20 / 28, rel_tol=1e-6)
+    assert math.isclose(float(lw["l1"]), 0.5) and math.isclose(float(lw["l1_tree"]), 1.0)
 
 
 def _weights(run):

@@ -314,20 +314,20 @@ def _ground_plane(perc: Perception, edges, up_hint):
     return pl, ""
 
 
-def measure_from_perception(perc: Perception, photo: str = "", *, timings: dict | None = None) -> MeasureResult:
-    """Measure the DBH of the roped stem from :class:`Perception`.
+def stem_edges(perc: Perception, gray: np.ndarray):
+    """The roped stem's silhouette edges at the rope, checked against the rope band.
+
+    Parameters
+    ----------
+    perc : :class:`Perception` (its edge mask, rope and rope band are used).
+    gray : (H, W) float32 intensity of ``perc.rgb``.
 
     Returns
     -------
-    MeasureResult with ``dbh_cm``/``dbh_sigma_cm``/``distance_m``/``scale_source``/``flags``
-    and ``estimates_cm``; ``error`` set (and ``dbh_cm`` None) when the stem cannot be measured.
+    (edges, flags, width_vs_rope): :class:`~.edges.TrunkEdges` (falsy with a reason when not
+    found), the flags this step raised, and ``|ln(edge width / rope length)|`` when the two
+    disagree (a sigma term, else 0).
     """
-    t0 = time.perf_counter()
-    res = MeasureResult(photo=photo, timings_ms=dict(timings or {}))
-    cam = perc.camera
-    gray = perc.rgb.astype(np.float32).mean(2)
-    net = perc.source == "network"      # network perception (vs ground truth): wider error model
-    SN = {**SIGMA_MODEL_NETWORK, **(perc.sigma_network or {})}
     emask = perc.tree_mask if perc.edge_mask is None else perc.edge_mask
     edges = _edges_two_pass(gray, emask, perc)
     flags: list[str] = []
@@ -356,6 +356,24 @@ def measure_from_perception(perc: Perception, photo: str = "", *, timings: dict 
             flags.append("edges_from_rope_band")
         elif e3.reason == REASON_OUT_OF_PHOTO:
             edges = e3          # the more telling reason
+    return edges, flags, width_vs_rope
+
+
+def measure_from_perception(perc: Perception, photo: str = "", *, timings: dict | None = None) -> MeasureResult:
+    """Measure the DBH of the roped stem from :class:`Perception`.
+
+    Returns
+    -------
+    MeasureResult with ``dbh_cm``/``dbh_sigma_cm``/``distance_m``/``scale_source``/``flags``
+    and ``estimates_cm``; ``error`` set (and ``dbh_cm`` None) when the stem cannot be measured.
+    """
+    t0 = time.perf_counter()
+    res = MeasureResult(photo=photo, timings_ms=dict(timings or {}))
+    cam = perc.camera
+    gray = perc.rgb.astype(np.float32).mean(2)
+    net = perc.source == "network"      # network perception (vs ground truth): wider error model
+    SN = {**SIGMA_MODEL_NETWORK, **(perc.sigma_network or {})}
+    edges, flags, width_vs_rope = stem_edges(perc, gray)
     if not edges:
         res.error = f"cannot measure the roped stem: {edges.reason}"
         return res

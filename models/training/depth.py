@@ -63,6 +63,7 @@ class DepthTrainConfig:
     lambda_silog: float = 2.0      #: measured to help (300-step proxy: AbsRel 0.350 -> 0.337
     lambda_grad: float = 2.0       #: and delta1 0.476 -> 0.497 together with lambda_grad)
     gan_start: int = 0             #: first step with the adversarial term
+    tree_weight: float = 0.0       #: extra L1 weight on tree pixels (the pipeline reads the stem's depth)
     mask_drop: float = 0.1         #: per-tree probability of dropping it from the input mask
     mask_morph: float = 0.3        #: probability of a random 1-px erode/dilate of the input mask
     portrait_frac: float = 0.2     #: generator source only: fraction of portrait renders
@@ -189,7 +190,8 @@ def depth_example(sample: dict[str, Any], size: int, rng: np.random.Generator | 
     Without ``rng``/``aug`` this is exactly the runtime preprocessing (area-resized photo and
     mask). Returns ``image`` (3, S, S) float32, ``mask`` (1, S, S) float32, ``depth`` (1, S, S)
     float32 metres (0 = invalid: sky, padding), ``code`` (1, S, S) float32 (0 where invalid),
-    ``valid`` (1, S, S) bool and ``fx_net`` float.
+    ``valid`` (1, S, S) bool, ``fx_net`` float and ``tree`` (1, S, S) float32 (1 on the
+    ground-truth tree pixels: the extra L1 weight of ``tree_weight``).
     """
     sample = undistort_sample(sample)
     H, W = sample["rgb"].shape[:2]
@@ -201,22 +203,25 @@ def depth_example(sample: dict[str, Any], size: int, rng: np.random.Generator | 
         mask = _noisy_mask(s["instance"], rng, mask_drop, mask_morph)
         scale = size / max(w, h)
         mask_lb = letterbox(mask, size, "nearest")
+        tree_lb = letterbox(s["instance"] > 0, size, "nearest")
     else:
         rgb, depth, K = sample["rgb"], sample["depth"], _K(sample)
         scale = size / max(W, H)
         mask_lb = letterbox(sample["instance"] > 0, size, "mask")
+        tree_lb = letterbox(sample["instance"] > 0, size, "nearest")
     fx_net = float(K[0, 0]) * scale
     img = normalize_rgb(letterbox(rgb, size, "rgb"))
     d = letterbox(depth.astype(np.float32), size, "nearest")
     valid = d > 0
     code = np.where(valid, metric_to_depth_code(np.where(valid, d, 1.0), fx_net, size), 0.0)
     return {"image": img, "mask": mask_lb.astype(np.float32)[None], "depth": d[None],
-            "code": code.astype(np.float32)[None], "valid": valid[None], "fx_net": fx_net}
+            "code": code.astype(np.float32)[None], "valid": valid[None], "fx_net": fx_net,
+            "tree": (np.asarray(tree_lb) > 0.5).astype(np.float32)[None]}
 
 
 def _collate(items: list[dict[str, Any]], device: torch.device) -> dict[str, torch.Tensor]:
     out = {}
-    for k in ("image", "mask", "depth", "code", "valid"):
+    for k in ("image", "mask", "depth", "code", "valid", "tree"):
         out[k] = torch.from_numpy(np.stack([it[k] for it in items])).to(device)
     out["fx_net"] = torch.tensor([it["fx_net"] for it in items], dtype=torch.float32, device=device)
     return out
@@ -264,8 +269,15 @@ def depth_losses(t: torch.Tensor, batch: dict[str, torch.Tensor], cfg: DepthTrai
                  disc: nn.Module | None = None) -> dict[str, torch.Tensor]:
     """Generator loss terms; ``total`` is their weighted sum."""
     v = batch["valid"]
-    out = {"l1": _masked_mean((t - batch["code"]).abs(), v)}
-    total = cfg.lambda_l1 * out["l1"]
+    err = (t - batch["code"]).abs()
+    out = {"l1": _masked_mean(err, v)}
+    if cfg.tree_weight:
+        # the pipeline reads the stem's depth: tree pixels count 1 + tree_weight times
+        w = 1.0 + cfg.tree_weight * batch["tree"]
+        out["l1_tree"] = _masked_mean(err, v & (batch["tree"] > 0.5))
+        total = cfg.lambda_l1 * (err * w * v).sum() / (w * v).sum().clamp_min(1.0)
+    else:
+        total = cfg.lambda_l1 * out["l1"]
     if cfg.lambda_silog:
         out["silog"] = silog_loss(t, batch["code"], v)
         total = total + cfg.lambda_silog * out["silog"]
@@ -311,7 +323,8 @@ def _mean_metrics(ms: list[dict[str, float]]) -> dict[str, float]:
     ms = [m for m in ms if m]
     if not ms:
         return {}
-    return {k: float(np.mean([m[k] for m in ms])) for k in ms[0]}
+    keys = dict.fromkeys(k for m in ms for k in m)
+    return {k: float(np.mean([m[k] for m in ms if k in m])) for k in keys}
 
 
 # --------------------------------------------------------------------------- training
@@ -436,7 +449,12 @@ def train_depth(run_dir: str, steps: int = 20000, data: Any = None, resume: bool
             t = gen(b["image"], b["mask"]).cpu().numpy()
             for it, tt in zip(items, t):
                 pred = depth_code_to_metric(tt[0], it["fx_net"], S)
-                ms.append(depth_metrics(pred, it["depth"][0], it["valid"][0], cfg.max_eval_depth_m))
+                m = depth_metrics(pred, it["depth"][0], it["valid"][0], cfg.max_eval_depth_m)
+                # the same on tree pixels alone (what the pipeline reads)
+                mt = depth_metrics(pred, it["depth"][0], it["valid"][0] & (it["tree"][0] > 0.5),
+                                   cfg.max_eval_depth_m)
+                m.update({"tree_absrel": mt["absrel"], "tree_rmse_log": mt["rmse_log"]} if mt else {})
+                ms.append(m)
         res = _mean_metrics(ms)
         b = _collate(val_cache[:4], device)
         res["val_l1"] = float(_masked_mean((gen(b["image"], b["mask"]) - b["code"]).abs(), b["valid"]))
