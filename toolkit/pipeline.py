@@ -435,8 +435,8 @@ def _measure(path, rgb, camera, pick_xy, want_cloud, want_debug, sess: Session, 
         elif off_pick:
             # the nearest band is elsewhere: not what the user tapped (unless the finder sees it)
             pick_missed = True
-    if sess.rope_finder is not None and (pick_missed or (pick is None and (weak_refused or (not rope and not rope.ambiguous)))
-                                         or (pick is not None and not rope and not rope.ambiguous)):
+    no_rope = not rope and not rope.ambiguous
+    if sess.rope_finder is not None and (pick_missed or no_rope or (pick is None and weak_refused)):
         # neither the band detector nor the mask-guided stem search: the mask-free rope finder
         # (the segmenter may have missed or split the roped stem); at a tap, its candidate there
         from .rope_finder import rope_from_finder

@@ -51,7 +51,7 @@ __all__ = [
     "make_source", "source_from_config", "config_from_dict", "AugmentConfig", "AUGMENT_PRESETS", "photometric", "geometric", "augment",
     "resize_sample", "SPATIAL_KEYS", "TRAINING_MODULES", "register_calibration",
     "calibration_inputs", "register_eval", "evaluate_kind", "load_run_model", "atomic_torch_save", "pack_weights", "load_packed_weights",
-    "atomic_write_text", "warmup_cosine", "binary_auc", "bank_source",
+    "atomic_write_text", "warmup_cosine", "binary_auc", "bank_source", "bank_run_sources",
 ]
 
 # --------------------------------------------------------------------------- reproducibility
@@ -663,6 +663,24 @@ def bank_source(data: Any, missing: str, wrong: str, key: str | None = None) -> 
     if not isinstance(src, BankSource) or (key is not None and key not in src.arrays):
         raise ValueError(f"{wrong}, got {src.config()}")
     return src
+
+
+def bank_run_sources(run_dir: str | os.PathLike, resume: bool, options: dict[str, Any], data: Any,
+                     val_data: Any, source_fn: Callable[[Any], BankSource]
+                     ) -> tuple[dict[str, Any], BankSource, BankSource | None]:
+    """Options and banks of a bank-trained run: ``(options, train source, validation source or None)``.
+
+    On ``resume`` the run's own config.json fills in what the call leaves out (its options
+    under the call's, its ``data`` and ``val_data`` where the call gives none). ``source_fn``
+    turns a data value into a :class:`BankSource` (e.g. a kind's :func:`bank_source` wrapper).
+    """
+    run = RunDir(run_dir)
+    if resume and run.config_path.exists():
+        old = run.read_config()
+        options = {**old.get("train", {}), **options}
+        data = data if data is not None else old.get("data")
+        val_data = val_data if val_data is not None else old.get("val_data")
+    return options, source_fn(data), (source_fn(val_data) if val_data is not None else None)
 
 
 def source_from_config(cfg: dict[str, Any]) -> DataSource:

@@ -24,9 +24,10 @@ from torch.nn import functional as F
 
 from monodbh.models.modeling.registry import build
 from monodbh.models.runtime_rope import patch_feed
-from monodbh.models.training.common import (AugmentConfig, BankSource, DataSource, bank_source, binary_auc,
-                                            config_from_dict, photometric, register_calibration, register_eval,
-                                            select_device, train_loop, warmup_cosine)
+from monodbh.models.training.common import (AugmentConfig, BankSource, DataSource, bank_run_sources,
+                                            bank_source, binary_auc, config_from_dict, photometric,
+                                            register_calibration, register_eval, select_device, train_loop,
+                                            warmup_cosine)
 
 __all__ = ["RopeTrainConfig", "rope_metrics", "train_ropenet"]
 
@@ -128,19 +129,10 @@ def train_ropenet(run_dir: str, steps: int = 3000, data: Any = None, resume: boo
     -------
     dict ``{"step", "val", "bank"}``.
     """
-    from monodbh.models.training.common import RunDir
-
-    run = RunDir(run_dir)
-    if resume and run.config_path.exists():
-        old = run.read_config()
-        options = {**old.get("train", {}), **options}
-        data = data if data is not None else old.get("data")
-        val_data = val_data if val_data is not None else old.get("val_data")
+    options, src, vsrc = bank_run_sources(run_dir, resume, options, data, val_data, _bank_source)
     cfg = RopeTrainConfig.from_dict(options)
     device = select_device(cfg.threads)
     torch.manual_seed(cfg.seed)
-    src = _bank_source(data)
-    vsrc = _bank_source(val_data) if val_data is not None else None
     bank = src.arrays
     vbank = vsrc.arrays if vsrc is not None else None
     y = bank["label"].astype(np.float32)
