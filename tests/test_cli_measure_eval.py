@@ -9,7 +9,7 @@ from PIL import Image
 from typer.testing import CliRunner
 
 from monodbh.calib import Camera, MonodbhError, save_camera
-from monodbh.cli.eval_cmd import eval_metrics
+from monodbh.cli.eval_cmd import eval_metrics, gt_rope_px
 from monodbh.cli.main import app
 from monodbh.toolkit.cloud_io import read_cloud
 from monodbh.toolkit.result import MeasureResult, PointCloud
@@ -118,6 +118,26 @@ def test_eval_metrics_detection_and_false_positive():
     m = eval_metrics(recs)
     assert m["detection_rate"] == 0.5 and m["bias_cm"] == 2.0 and m["coverage_1sigma"] == 0.0
     assert m["refusal_rate"] == 0.0 and m["false_measurements"] == 1 and m["failure_reasons"] == {"no rope": 1}
+
+
+def test_eval_metrics_by_rope_thickness():
+    recs = [{"gt_dbh_cm": 30.0, "gt_rope_px": 0.6, "dbh_cm": None, "error": "x: no rope", "photo": "x"},
+            {"gt_dbh_cm": 30.0, "gt_rope_px": 0.9, "dbh_cm": 33.0, "dbh_sigma_cm": 2.0, "error": None},
+            {"gt_dbh_cm": 20.0, "gt_rope_px": 1.5, "dbh_cm": 21.0, "dbh_sigma_cm": 2.0, "error": None},
+            {"gt_dbh_cm": 20.0, "gt_rope_px": 7.0, "dbh_cm": 19.0, "dbh_sigma_cm": 2.0, "error": None},
+            {"gt_dbh_cm": 20.0, "dbh_cm": 19.0, "dbh_sigma_cm": 2.0, "error": None}]   # no thickness: left out
+    b = eval_metrics(recs)["by_rope_px"]
+    assert list(b) == ["0-1 px", "1-2 px", ">=5 px"]
+    assert b["0-1 px"] == {"roped": 2, "measured": 1, "detection_rate": 0.5, "mae_cm": 3.0}
+    assert b["1-2 px"]["detection_rate"] == 1.0 and b[">=5 px"]["mae_cm"] == 1.0
+
+
+def test_gt_rope_px_from_a_sample_record():
+    meta = {"roped_tree": 2, "K": [[1000.0, 0, 0], [0, 1000.0, 0], [0, 0, 1]], "rope": {"tube_diameter_m": 0.008},
+            "trees": [{"id": 1, "bh_point_cam": [0, 0, 3.0], "r_bh_m": 0.1},
+                      {"id": 2, "bh_point_cam": [0, 0, 4.1], "r_bh_m": 0.1}]}
+    assert gt_rope_px(meta) == pytest.approx(2.0)
+    assert gt_rope_px({"roped_tree": None, "trees": []}) is None
 
 
 def test_reconstruct_ply_las_and_errors(tmp_path):

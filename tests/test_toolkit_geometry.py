@@ -241,3 +241,23 @@ def test_rope_of_known_diameter_sets_the_scale():
         assert "rope_too_thin_for_scale" in mc.measure_from_perception(p).flags
         return
     pytest.fail("no measurable roped scene")
+
+
+def test_stem_depth_is_the_nearest_across_the_stem():
+    import cv2
+
+    from monodbh.toolkit.measure_core import _depth_nearest_across
+
+    # the photo's edges say the stem spans x 34-45; the network's map (coarse, upsampled) has
+    # the stem narrower and shifted: its middle reads the background, the nearest depth the stem
+    d = np.full((60, 80), 10.0, np.float32)
+    d[:, 31:39] = 5.0
+    blurred = cv2.GaussianBlur(d, (0, 0), 1.5)
+    assert blurred[30, 40] > 8.0
+    z = _depth_nearest_across(blurred, (34.0, 30.0), (45.0, 30.0))
+    assert z == pytest.approx(float(blurred[30, 35:39].min()), abs=1e-6) and z < 5.1
+    # the cross-section may lean: the segment between the edges is followed, +-2 px across
+    assert _depth_nearest_across(d, (34.0, 28.0), (45.0, 32.0)) == pytest.approx(5.0)
+    # nothing positive there (or off the map): nan, not a number that looks like a depth
+    assert np.isnan(_depth_nearest_across(np.zeros_like(d), (34.0, 30.0), (45.0, 30.0)))
+    assert np.isnan(_depth_nearest_across(d, (200.0, 300.0), (210.0, 300.0)))

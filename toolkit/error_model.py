@@ -93,6 +93,17 @@ def collect(folder: str | Path, limit: int | None = None, progress: bool = True,
                        scale_leader=r.debug.get("scale_leader"),
                        lam_combined_log_err=float(np.log(r.debug.get("lam_combined", lam_used) / lam_true)),
                        lam_true=lam_true,
+                       stem_width_fx1000=(1000.0 * r.debug["stem_width_px"] / r.debug["fx_px"]
+                                          if r.debug.get("fx_px") else None),
+                       base_status=next((f[len("stem_base_"):] for f in r.flags if f.startswith("stem_base_")
+                                         and f[len("stem_base_"):] in ("edge", "occluded", "lost", "off_mask",
+                                                                       "unconfirmed")), None),
+                       scale_bound_log_err=(float(np.log(r.debug["scale_bound"][0] / lam_true))
+                                            if r.debug.get("scale_bound") else None),
+                       lam_before_bound_log_err=(float(np.log(r.debug["lam_before_bound"] / lam_true))
+                                                 if r.debug.get("lam_before_bound") else None),
+                       lam_uncalibrated_log_err=(float(np.log(r.debug["lam_uncalibrated"] / lam_true))
+                                                 if r.debug.get("lam_uncalibrated") else None),
                        up_err_deg={k: _angle_deg(u, true_up(m)) for k, u in r.debug.get("up_sources", {}).items()})
         rows.append(row)
         if progress:

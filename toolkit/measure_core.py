@@ -97,6 +97,22 @@ BASE_P_STRONG = 0.5
 NETWORK_SCALE_SOURCES = ("network", "ground_plane", "camera_height")
 #: a scale more than this fraction beyond the visible stem's bound is capped to the bound
 SCALE_BOUND_SLACK = 0.03
+#: how the network depth of the roped stem is read at the rope: "nearest" (the minimum across
+#: the stem between its edges, :func:`_depth_nearest_across`) or "centre" (the median of three
+#: points in the stem's middle, before session 14). At the stem's centre the network's depth is
+#: too far by a margin that grows as the stem thins (background bleeding through the 256-pixel
+#: map): median ln error +0.24 for stems 15-30 px wide at fx 1000, +0.12 at 30-60, +0.03 wider
+#: (roped stems of calibration sets 9100, 9200 and the benchmark, 244 points, true masks); the
+#: nearest depth across the stem: bias +0.01 and rms 0.278 -> 0.247 (seed 9100), 0.278 -> 0.253
+#: (9200), 0.253 -> 0.243 (benchmark)
+STEM_DEPTH_READ = "nearest"
+#: the stem-base tracker's outcomes whose lowest tracked point bounds the distance: "occluded"
+#: (something hides the stem below it). Not "edge" (the photo's border; measured loose: median
+#: 2.2x the true distance, never under the network's, calibration sets 9100-9300) nor "lost"
+#: (5.3x), nor "off_mask" (the edges ran on past the mask's end: tight, median 1.10x, but 2 of 11
+#: more than 4 % under the truth; capping there helped 3 calibration photos and made both
+#: benchmark photos it changed worse, MAE 5.44 -> 5.51 cm).
+SCALE_BOUND_STATUSES = ("occluded",)
 #: how the stem base is found when the user gives none: "edges" (silhouette edges followed down
 #: to the ground, :func:`~.edges.track_stem_base`), "mask" (the tree mask traced down, session 4),
 #: "either" (edges, else the mask). Measured on the calibration photos: the edges found 9 bases
@@ -282,6 +298,34 @@ def _depth_at(depth, mask, xy, radius):
     if not m.any():
         return np.nan
     return float(np.median(win[m]))
+
+
+def _depth_nearest_across(depth, left_xy, right_xy, rows: int = 2, inner: float = 0.9):
+    """The nearest depth on the stem's cross-section: the minimum of ``depth`` (H, W) over the
+    segment between the two edge points (its middle ``inner`` fraction), ``+-rows`` pixels
+    across it; nan where nothing positive is there.
+
+    The depth network's map is upsampled from its 256-pixel input, where a thin stem is a few
+    pixels wide: the background behind it bleeds into its middle, so the middle reads too far
+    (see :data:`STEM_DEPTH_READ`).
+    """
+    H, W = depth.shape
+    L, R = np.asarray(left_xy, np.float64), np.asarray(right_xy, np.float64)
+    n = max(2, int(np.ceil(np.linalg.norm(R - L))) + 1)
+    f = 0.5 + (np.linspace(0.0, 1.0, n) - 0.5) * inner
+    P = L[None] + f[:, None] * (R - L)[None]
+    d = R - L
+    across = np.array([-d[1], d[0]]) / (np.linalg.norm(d) + 1e-12)
+    best = np.inf
+    for k in range(-rows, rows + 1):
+        Q = np.round(P + k * across).astype(int)
+        ok = (Q[:, 0] >= 0) & (Q[:, 0] < W) & (Q[:, 1] >= 0) & (Q[:, 1] < H)
+        if ok.any():
+            z = depth[Q[ok, 1], Q[ok, 0]]
+            z = z[z > 0]
+            if z.size:
+                best = min(best, float(z.min()))
+    return best if np.isfinite(best) else np.nan
 
 
 def _ground_plane(perc: Perception, edges, up_hint):
@@ -531,12 +575,16 @@ def measure_from_perception(perc: Perception, photo: str = "", *, timings: dict 
     z_front = np.nan
     if perc.depth is not None:
         # depth of the axis at the rope from the depth map: front surface + radius
-        line = np.array([edges.left_xy + f * (edges.right_xy - edges.left_xy) for f in (0.35, 0.5, 0.65)])
-        zs = [_depth_at(perc.depth, perc.tree_mask, p + 3 * perc.rope_half_px * edges.along, 2) for p in line]
-        if not np.isfinite(zs).any() and perc.edge_mask is not None:
-            # the coarse tree mask misses the stem at the rope: the stem between its edges
-            zs = [_depth_at(perc.depth, perc.edge_mask, p + 3 * perc.rope_half_px * edges.along, 2) for p in line]
-        z_front = float(np.nanmedian(zs)) if np.isfinite(zs).any() else np.nan
+        off = 3 * perc.rope_half_px * edges.along
+        if not perc.depth_is_metric and STEM_DEPTH_READ == "nearest":
+            z_front = _depth_nearest_across(perc.depth, edges.left_xy + off, edges.right_xy + off)
+        else:
+            line = np.array([edges.left_xy + f * (edges.right_xy - edges.left_xy) for f in (0.35, 0.5, 0.65)])
+            zs = [_depth_at(perc.depth, perc.tree_mask, p + off, 2) for p in line]
+            if not np.isfinite(zs).any() and perc.edge_mask is not None:
+                # the coarse tree mask misses the stem at the rope: the stem between its edges
+                zs = [_depth_at(perc.depth, perc.edge_mask, p + off, 2) for p in line]
+            z_front = float(np.nanmedian(zs)) if np.isfinite(zs).any() else np.nan
         if np.isfinite(z_front):
             lam_front = z_front / max(r_A[2], 1e-6)
             lam_axis = lam_front / max(1 - sin_half, 1e-6)      # axis = front surface + radius
@@ -565,6 +613,8 @@ def measure_from_perception(perc: Perception, photo: str = "", *, timings: dict 
         res.error = "cannot set the metric scale: no stem base, ground plane, pose or depth"
         return res
     res.debug["scale_candidates"] = {k: (float(l), float(sg)) for k, (l, sg) in cands.items()}
+    res.debug["stem_width_px"] = float(edges.width_px)
+    res.debug["fx_px"] = float(np.asarray(cam.K, float)[0, 0])
     order = ["depth_gt", "pose", "stem_base_user", "ground_plane", "stem_base", "stem_base_weak", "rope_diameter",
              "camera_height",
              "network"]
@@ -603,7 +653,8 @@ def measure_from_perception(perc: Perception, photo: str = "", *, timings: dict 
             # the measured spread of the calibrated distances (narrower than the raw network's)
             sig_rel = float(calib["sigma"])
     bound = res.debug.get("scale_bound")
-    if (net and bound is not None and bound[1] == "occluded" and best not in PRECISE_SCALE_SOURCES
+    res.debug["lam_before_bound"] = float(lam)
+    if (net and bound is not None and bound[1] in SCALE_BOUND_STATUSES and best not in PRECISE_SCALE_SOURCES
             and lam > bound[0] * (1 + SCALE_BOUND_SLACK)):
         # the stem was followed down to where something hides it: its base is there or lower,
         # so the rope-to-base metrology through that point is the farthest the stem can be.
