@@ -104,7 +104,9 @@ SCALE_BOUND_SLACK = 0.03
 #: map): median ln error +0.24 for stems 15-30 px wide at fx 1000, +0.12 at 30-60, +0.03 wider
 #: (roped stems of calibration sets 9100, 9200 and the benchmark, 244 points, true masks); the
 #: nearest depth across the stem: bias +0.01 and rms 0.278 -> 0.247 (seed 9100), 0.278 -> 0.253
-#: (9200), 0.253 -> 0.243 (benchmark)
+#: (9200), 0.253 -> 0.243 (benchmark). The median of such reads at 8 cross-sections within a
+#: stem width above and below the rope was no better (calibration sets 9100-9300: network rms
+#: 0.296 -> 0.290) and worse on the benchmark (DBH MAE 5.37 -> 5.70 cm).
 STEM_DEPTH_READ = "nearest"
 #: the stem-base tracker's outcomes whose lowest tracked point bounds the distance: "occluded"
 #: (something hides the stem below it). Not "edge" (the photo's border; measured loose: median
