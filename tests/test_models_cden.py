@@ -93,6 +93,30 @@ def test_depth_example_letterbox_and_metrics():
     assert ex2["code"].shape == (1, 64, 64) and np.all(np.abs(ex2["code"]) <= 1)
 
 
+def test_depth_example_feeds_the_segmenter_mask_when_asked(tmp_path):
+    import cv2
+
+    from monodbh.models.training.common import AugmentConfig
+    from monodbh.models.training.depth import depth_example
+    from monodbh.models.training.segmasks import read_segmask, segmask_path
+
+    s = _fake_sample()
+    H, W = s["rgb"].shape[:2]
+    seg = np.zeros((H, W), bool)
+    seg[:, : W // 4] = True                          # a "segmenter mask" unlike the true one
+    s["segmask"] = seg
+    aug = AugmentConfig(crop=0.0, hflip=0.0, crop_aspect=(1.0, 1.0))
+    with_seg = depth_example(s, 64, np.random.default_rng(0), aug, 0.0, 0.0, segmask_prob=1.0)
+    without = depth_example(s, 64, np.random.default_rng(0), aug, 0.0, 0.0, segmask_prob=0.0)
+    m_seg, m_gt = with_seg["mask"][0] > 0.5, without["mask"][0] > 0.5
+    assert not np.array_equal(m_seg, m_gt)
+    assert np.array_equal(with_seg["tree"], without["tree"])     # the L1 weight stays the truth's
+    # the mask file round trip
+    assert read_segmask(tmp_path, 0) is None
+    cv2.imwrite(str(segmask_path(tmp_path, 0)), (seg * 255).astype(np.uint8))
+    assert np.array_equal(read_segmask(tmp_path, 0), seg)
+
+
 def test_depth_losses_tree_weight():
     from monodbh.models.training.depth import DepthTrainConfig, depth_losses
 

@@ -508,12 +508,15 @@ class FolderSource(DataSource):
     """Samples of one or more ``dbh synth`` folders (concatenated, in listed order).
 
     Uses ``monodbh.models.synthetic.io.list_samples(folder)`` and ``read_sample(folder, index)``.
-    ``cache`` keeps up to that many decoded samples in memory (LRU).
+    ``cache`` keeps up to that many decoded samples in memory (LRU). ``segmasks``: also read
+    the segmenter's mask ``NNNNNN.segmask.png`` (key ``segmask``) where it exists.
     """
 
     def __init__(self, folders: str | os.PathLike | Sequence[str | os.PathLike],
-                 cache: int = 0) -> None:
+                 cache: int = 0, segmasks: bool = False) -> None:
         from monodbh.models.synthetic import io as sio
+
+        self.segmasks = segmasks     # also read NNNNNN.segmask.png (training.segmasks) as "segmask"
 
         self._io = sio
         if isinstance(folders, (str, os.PathLike)):
@@ -543,6 +546,11 @@ class FolderSource(DataSource):
             return self._cache[index]
         folder, i = self.items[index]
         s = self._io.read_sample(folder, i)
+        if self.segmasks:
+            from .segmasks import read_segmask
+            m = read_segmask(folder, i)
+            if m is not None:
+                s["segmask"] = m
         if self._cache_size:
             self._cache[index] = s
             if len(self._cache) > self._cache_size:
@@ -550,7 +558,10 @@ class FolderSource(DataSource):
         return s
 
     def config(self) -> dict[str, Any]:
-        return {"type": "folders", "folders": [str(f.resolve()) for f in self.folders]}
+        out = {"type": "folders", "folders": [str(f.resolve()) for f in self.folders]}
+        if self.segmasks:
+            out["segmasks"] = True
+        return out
 
 
 class GeneratorSource(DataSource):
@@ -689,7 +700,7 @@ def source_from_config(cfg: dict[str, Any]) -> DataSource:
     if t == "banks":
         return BankSource(cfg["paths"])
     if t == "folders":
-        return FolderSource(cfg["folders"], cache=cfg.get("cache", 0))
+        return FolderSource(cfg["folders"], cache=cfg.get("cache", 0), segmasks=bool(cfg.get("segmasks", False)))
     if t == "generator":
         return GeneratorSource(cfg.get("seed", 0), tuple(cfg.get("size", (320, 240))),
                                cfg.get("opts"), cfg.get("pool"), cfg.get("cache", 0))
@@ -726,7 +737,8 @@ def make_source(data: Any, *, default_seed: int = 0,
 # --------------------------------------------------------------------------- augmentation
 
 #: Keys of (H, W[, C]) arrays moved by geometric augmentation. Others are left alone.
-SPATIAL_KEYS: tuple[str, ...] = ("rgb", "depth", "semantic", "instance", "rope", "z1", "z2")
+#: (``segmask``: the shipped segmenter's tree mask, where ``training.segmasks`` wrote one)
+SPATIAL_KEYS: tuple[str, ...] = ("rgb", "depth", "semantic", "instance", "rope", "z1", "z2", "segmask")
 
 
 @dataclass

@@ -66,6 +66,7 @@ class DepthTrainConfig:
     tree_weight: float = 0.0       #: extra L1 weight on tree pixels (the pipeline reads the stem's depth)
     mask_drop: float = 0.1         #: per-tree probability of dropping it from the input mask
     mask_morph: float = 0.3        #: probability of a random 1-px erode/dilate of the input mask
+    segmask_prob: float = 0.0      #: probability of feeding the segmenter's mask (``segmask``) instead
     portrait_frac: float = 0.2     #: generator source only: fraction of portrait renders
     max_eval_depth_m: float = 80.0
     val_n: int = 16
@@ -152,7 +153,7 @@ def _K(sample: dict[str, Any]) -> np.ndarray:
     return np.asarray(sample["K"] if "K" in sample else sample["meta"]["K"], np.float64)
 
 
-_UNDIST_KEYS = ("rgb", "depth", "semantic", "instance", "rope", "z1", "z2")
+_UNDIST_KEYS = ("rgb", "depth", "semantic", "instance", "rope", "z1", "z2", "segmask")
 
 
 def undistort_sample(sample: dict[str, Any]) -> dict[str, Any]:
@@ -184,7 +185,7 @@ def undistort_sample(sample: dict[str, Any]) -> dict[str, Any]:
 
 def depth_example(sample: dict[str, Any], size: int, rng: np.random.Generator | None = None,
                   aug: AugmentConfig | None = None, mask_drop: float = 0.0,
-                  mask_morph: float = 0.0) -> dict[str, np.ndarray]:
+                  mask_morph: float = 0.0, segmask_prob: float = 0.0) -> dict[str, np.ndarray]:
     """One training/eval example at network resolution ``size`` (letterbox fit).
 
     Without ``rng``/``aug`` this is exactly the runtime preprocessing (area-resized photo and
@@ -200,7 +201,10 @@ def depth_example(sample: dict[str, Any], size: int, rng: np.random.Generator | 
         s = augment(sample, rng, aug, (W, H), fit=size)
         rgb, depth, K = s["rgb"], s["depth"], s["K"]
         h, w = rgb.shape[:2]
-        mask = _noisy_mask(s["instance"], rng, mask_drop, mask_morph)
+        if s.get("segmask") is not None and segmask_prob > 0 and rng.random() < segmask_prob:
+            mask = np.asarray(s["segmask"], bool)     # what the segmenter gives at run time
+        else:
+            mask = _noisy_mask(s["instance"], rng, mask_drop, mask_morph)
         scale = size / max(w, h)
         mask_lb = letterbox(mask, size, "nearest")
         tree_lb = letterbox(s["instance"] > 0, size, "nearest")
@@ -409,7 +413,7 @@ def train_depth(run_dir: str, steps: int = 20000, data: Any = None, resume: bool
         t0 = time.perf_counter()
         idx = batch_indices(step, cfg.batch_size, src.n, cfg.seed)
         items = [depth_example(src.get(i), S, sample_rng(cfg.seed, step, j), aug, cfg.mask_drop,
-                               cfg.mask_morph) for j, i in enumerate(idx)]
+                               cfg.mask_morph, cfg.segmask_prob) for j, i in enumerate(idx)]
         b = _collate(items, device)
         t1 = time.perf_counter()
         use_gan = disc is not None and step >= cfg.gan_start
