@@ -312,11 +312,11 @@ def _depth_nearest_across(depth, left_xy, right_xy, rows: int = 2, inner: float 
     (see :data:`STEM_DEPTH_READ`).
     """
     H, W = depth.shape
-    L, R = np.asarray(left_xy, np.float64), np.asarray(right_xy, np.float64)
-    n = max(2, int(np.ceil(np.linalg.norm(R - L))) + 1)
+    L = np.asarray(left_xy, np.float64)
+    d = np.asarray(right_xy, np.float64) - L
+    n = max(2, int(np.ceil(np.linalg.norm(d))) + 1)
     f = 0.5 + (np.linspace(0.0, 1.0, n) - 0.5) * inner
-    P = L[None] + f[:, None] * (R - L)[None]
-    d = R - L
+    P = L[None] + f[:, None] * d[None]
     across = np.array([-d[1], d[0]]) / (np.linalg.norm(d) + 1e-12)
     best = np.inf
     for k in range(-rows, rows + 1):

@@ -517,7 +517,6 @@ class FolderSource(DataSource):
         from monodbh.models.synthetic import io as sio
 
         self.segmasks = segmasks     # also read NNNNNN.segmask.png (training.segmasks) as "segmask"
-
         self._io = sio
         if isinstance(folders, (str, os.PathLike)):
             folders = [folders]

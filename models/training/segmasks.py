@@ -37,18 +37,15 @@ def read_segmask(folder: str | Path, index: int) -> np.ndarray | None:
     return None if m is None else m > 127
 
 
-def write_segmasks(folder: str | Path, *, force: bool = False, models_dir: str | Path | None = None,
-                   threads: int = 2, progress: bool = True) -> int:
+def write_segmasks(folder: str | Path, *, force: bool = False, threads: int = 2,
+                   progress: bool = True) -> int:
     """Segment every sample of ``folder`` with the shipped segmenter; returns how many were written."""
     import cv2
 
-    from monodbh.models.runtime import Segmenter, load_manifest
+    from monodbh.models.runtime import Segmenter
     from monodbh.models.synthetic.io import list_samples
 
-    mdir = Path(models_dir) if models_dir else Path(__file__).resolve().parent.parent
-    manifest = load_manifest(mdir / "manifest.json")
-    ent = manifest.get("models", manifest)["segmenter"]
-    seg = Segmenter(mdir / ent["file"], threads=threads, manifest=manifest)
+    seg = Segmenter(threads=threads)        # the manifest's shipped model
     idx = list_samples(folder)
     n = 0
     for k, i in enumerate(idx):
