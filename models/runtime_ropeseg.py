@@ -32,11 +32,17 @@ import numpy as np
 from monodbh.models.runtime import OnnxPredictor
 from monodbh.models.runtime_gan import normalize_rgb
 
-__all__ = ["TILE", "BORDER", "LOGIT_LO", "RopeComponent", "tile_origins", "rope_components", "RopeFinder"]
+__all__ = ["TILE", "BORDER", "LOGIT_LO", "KNOT_MAX_TILT_DEG", "KNOT_MAX_RADIUS_FRACTION", "RopeComponent",
+           "tile_origins", "knot_band", "rope_components", "RopeFinder"]
 
 TILE: int = 384       #: the shipped graph's tile side (photo pixels; the runtime reads it from the graph)
 BORDER: int = 16      #: photo pixels of each tile's border not kept where a neighbour covers them
 LOGIT_LO: float = 0.0  #: output pixels above these log-odds belong to a component
+#: a rope piece too thick for a band (knot and hanging ends) is searched for its band
+#: (:func:`knot_band`): a line within this angle of horizontal ...
+KNOT_MAX_TILT_DEG: float = 40.0
+#: ... through a piece of strands no thicker (inscribed radius) than this fraction of the band
+KNOT_MAX_RADIUS_FRACTION: float = 0.25
 
 
 @dataclass
@@ -53,6 +59,8 @@ class RopeComponent:
     mass : summed probability of its output pixels.
     n : number of output pixels.
     polyline : (2, 2) float32 end points (x, y) along the band.
+    trimmed : the piece was too thick for a band (a knot with hanging ends) and only its band
+        across the stem is described (:func:`knot_band`).
     """
     center_xy: tuple[float, float]
     direction: tuple[float, float]
@@ -62,6 +70,7 @@ class RopeComponent:
     mass: float
     n: int
     polyline: np.ndarray = field(repr=False, default=None)
+    trimmed: bool = False
 
 
 def tile_origins(size: int, tile: int = TILE, border: int = BORDER) -> list[int]:
@@ -89,6 +98,69 @@ def _moments(ys: np.ndarray, xs: np.ndarray, w: np.ndarray):
     if d[0] < 0:
         d = -d
     return cx, cy, d, ev
+
+
+def knot_band(ys: np.ndarray, xs: np.ndarray, max_tilt_deg: float = KNOT_MAX_TILT_DEG,
+              max_radius_frac: float = KNOT_MAX_RADIUS_FRACTION) -> np.ndarray | None:
+    """The band across the stem of a rope piece that also holds its knot and hanging ends.
+
+    A rope tied round a stem is often knotted at the front with its ends hanging down: the
+    finder then marks one connected piece shaped like a "T" or an "L", too thick for a band by
+    its moments. Its band is the strongest near-horizontal straight line through the piece
+    (``cv2.HoughLines`` on the piece's cells, normals within ``max_tilt_deg`` of vertical),
+    the cells within 1.5 cells of it, their longest run with gaps of at most 3 cells.
+
+    A piece is only trimmed when it is built of thin strands: its largest inscribed radius
+    (``cv2.distanceTransform``) is at most ``max_radius_frac`` of the band's length (a red
+    jacket or a cluster of red leaves is a blob, not strands).
+
+    Parameters
+    ----------
+    ys, xs : (N,) int output-cell coordinates of the piece.
+
+    Returns
+    -------
+    (N,) bool: the band's cells, or None when the piece has no such band.
+
+    Examples
+    --------
+    >>> ys = np.r_[np.full(30, 10), np.arange(11, 25)]          # a band with a hanging end
+    >>> xs = np.r_[np.arange(30), np.full(14, 20)]
+    >>> keep = knot_band(ys, xs)
+    >>> int(keep.sum()), bool(keep[:30].all())
+    (31, True)
+    """
+    ys, xs = np.asarray(ys, np.int64), np.asarray(xs, np.int64)
+    if len(xs) < 6:
+        return None
+    x0, y0 = int(xs.min()) - 2, int(ys.min()) - 2
+    m = np.zeros((int(ys.max()) - y0 + 3, int(xs.max()) - x0 + 3), np.uint8)
+    m[ys - y0, xs - x0] = 1
+    radius = float(cv2.distanceTransform(m, cv2.DIST_L2, 3).max())
+    t = np.deg2rad(max_tilt_deg)
+    lines = cv2.HoughLines(m * 255, 1, np.pi / 180, max(4, int(0.3 * max(m.shape))),
+                           min_theta=np.pi / 2 - t, max_theta=np.pi / 2 + t)
+    if lines is None:
+        return None
+    rho, theta = (float(v) for v in lines[0, 0])
+    X, Y = xs - x0, ys - y0
+    on = np.abs(X * np.cos(theta) + Y * np.sin(theta) - rho) <= 1.5
+    if on.sum() < 4:
+        return None
+    along = X * -np.sin(theta) + Y * np.cos(theta)
+    idx = np.flatnonzero(on)
+    order = idx[np.argsort(along[idx])]
+    a = along[order]
+    cuts = np.flatnonzero(np.diff(a) > 3.0)
+    starts, ends = np.r_[0, cuts + 1], np.r_[cuts, len(a) - 1]
+    k = int(np.argmax(a[ends] - a[starts]))
+    run = order[starts[k]:ends[k] + 1]
+    length = float(a[ends[k]] - a[starts[k]]) + 1.0
+    if radius > max(2.0, max_radius_frac * length):
+        return None
+    keep = np.zeros(len(xs), bool)
+    keep[run] = True
+    return keep
 
 
 def rope_components(logit: np.ndarray, stride: int = 2, lo: float = LOGIT_LO,
@@ -155,6 +227,16 @@ def rope_components(logit: np.ndarray, stride: int = 2, lo: float = LOGIT_LO,
         t = (xs - cx) * d[0] + (ys - cy) * d[1]
         length = (float(t.max() - t.min()) + 1.0) * stride
         thick = max(1.0, 4.0 * np.sqrt(max(ev[0], 0.0)) * stride)
+        trimmed = False
+        if length < 3.0 * thick:
+            # too thick for a band: a knot with hanging ends? keep the band across the stem
+            keep = knot_band(ys, xs)
+            if keep is not None:
+                ys, xs, w, trimmed = ys[keep], xs[keep], w[keep], True
+                cx, cy, d, ev = _moments(ys.astype(np.float64), xs.astype(np.float64), w)
+                t = (xs - cx) * d[0] + (ys - cy) * d[1]
+                length = (float(t.max() - t.min()) + 1.0) * stride
+                thick = max(1.0, 4.0 * np.sqrt(max(ev[0], 0.0)) * stride)
         c = (stride * cx + 0.5 * (stride - 1), stride * cy + 0.5 * (stride - 1))
         # end points: the outer photo pixels of the end cells (the extent is a whole number of cells)
         lo = stride * t.min() - 0.5 * (stride - 1)
@@ -162,7 +244,7 @@ def rope_components(logit: np.ndarray, stride: int = 2, lo: float = LOGIT_LO,
         ends = np.array([[c[0] + lo * d[0], c[1] + lo * d[1]], [c[0] + hi * d[0], c[1] + hi * d[1]]], np.float32)
         out.append(RopeComponent(center_xy=(float(c[0]), float(c[1])), direction=(float(d[0]), float(d[1])),
                                  length_px=length, thickness_px=float(thick), peak=float(z[ys, xs].max()),
-                                 mass=float(w.sum()), n=int(len(xs)), polyline=ends))
+                                 mass=float(w.sum()), n=int(len(xs)), polyline=ends, trimmed=trimmed))
     out.sort(key=lambda c: -c.mass)
     return out[:max_components]
 

@@ -44,3 +44,43 @@ def test_a_tap_chooses_among_rivals_and_accepts_fainter_bands():
     c = comps[0]
     assert distance_to_segment(c, c.center_xy) < 1e-6
     assert abs(distance_to_segment(c, (c.center_xy[0], c.center_xy[1] + FINDER_PICK_RADIUS_PX)) - FINDER_PICK_RADIUS_PX) < 1e-3
+
+
+def test_a_knotted_rope_keeps_its_band_and_a_blob_stays_refused():
+    # the band across the stem, a knot at its front and two ends hanging from it (a "T" piece)
+    z = _map([(50, 20, 70, None)])
+    z[51:53, 42:47] = 6.0                 # the knot
+    z[51:75, 43] = 6.0                    # hanging ends
+    z[51:70, 46] = 6.0
+    comps = rope_components(z)
+    assert len(comps) == 1 and comps[0].trimmed and band_shaped(comps[0])
+    det = rope_from_finder(comps, (400, 600))
+    assert det and abs(det.center_xy[1] - 100.5) < 2 and abs(det.direction[1]) < 0.1
+    assert 90 < det.polyline[-1, 0] - det.polyline[0, 0] < 110
+    # a red jacket: a blob with a straight edge is no band, trimmed or not
+    b = np.full((200, 300), -8.0, np.float32)
+    b[40:62, 40:70] = 8.0
+    cb = rope_components(b)
+    assert not cb[0].trimmed and not rope_from_finder(cb, (400, 600))
+    # a vertical red paint mark is not turned into a band either
+    v = np.full((200, 300), -8.0, np.float32)
+    v[20:80, 100:102] = 8.0
+    assert not rope_from_finder(rope_components(v), (400, 600))
+
+
+def test_finder_check_keeps_supported_ropes_replaces_or_refuses_the_others():
+    from monodbh.toolkit.rope import RopeDetection
+    from monodbh.toolkit.rope_finder import FINDER_SUPPORT_MIN_PEAK, finder_check, finder_support
+
+    comps = rope_components(_map([(50, 20, 60, None)]))            # the finder's rope at y 100, x 40..120
+    on = RopeDetection(True, "", center_xy=(80.0, 101.0), direction=(1.0, 0.0))
+    assert finder_support(comps, on.center_xy) >= FINDER_SUPPORT_MIN_PEAK
+    assert finder_check(on, comps, (400, 600)) == ("supported", None)
+    tape = RopeDetection(True, "", center_xy=(400.0, 300.0), direction=(1.0, 0.0))
+    verdict, alt = finder_check(tape, comps, (400, 600))
+    assert verdict == "replaced" and abs(alt.center_xy[1] - 100.5) < 1
+    # no finder candidate near the band, and none confident elsewhere: refused
+    faint = rope_components(_map([(50, 20, 60, 1.5)]))
+    assert finder_check(tape, faint, (400, 600)) == ("unsupported", None)
+    # a faint finder candidate through the band still supports it (a thin rope)
+    assert finder_check(on, faint, (400, 600))[0] == "supported"

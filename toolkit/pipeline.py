@@ -28,6 +28,10 @@ BASE_P_THRESHOLD = 0.3
 #: with ``--rope-mm``, read the rope's thickness again on the full-resolution photo when it is
 #: larger than the working image (see :func:`rope_at_full_resolution`)
 ROPE_FULL_RES = True
+#: the rope finder also checks a rope the band detector or the stem search found: where it sees
+#: nothing at the chosen band, its own confident band replaces it, or the photo is refused
+#: (``rope_finder.finder_check``)
+ROPE_FINDER_CROSS_CHECK = True
 #: the depth network sees the photo and its mirror image (see :class:`~monodbh.models.runtime_gan.DepthPredictor`)
 DEPTH_FLIP_TTA = True
 
@@ -447,6 +451,20 @@ def _measure(path, rgb, camera, pick_xy, want_cloud, want_debug, sess: Session, 
             rope, weak_refused, pick_missed = alt, False, False
             if alt:
                 rope_flags.append("rope_found_by_network")
+    elif (ROPE_FINDER_CROSS_CHECK and sess.rope_finder is not None and pick is None and rope
+          and not weak_refused):
+        # the band detector or the stem search found a rope: the finder checks it (a red band of
+        # tape or leaves taken where the real rope was faint to the band detector)
+        from .rope_finder import finder_check
+        t_f = time.perf_counter()
+        verdict, alt = finder_check(rope, sess.rope_finder.components(img), (h, w))
+        tm["rope_finder"] = 1000 * (time.perf_counter() - t_f)
+        if verdict == "replaced":
+            rope, rope_flags = alt, ["rope_found_by_network", "rope_chosen_by_network"]
+        elif verdict == "unsupported":
+            x, y = rope.center_xy
+            raise MonodbhError(f"{path}: no red rope found (the red band at ({x / sx:.0f},{y / sy:.0f}) does not "
+                               f"look like a rope to the rope finder; --pick X,Y to measure there)")
     if pick_missed:
         px, py = pick_xy
         raise MonodbhError(f"{path}: no red rope found at the picked point ({px:.0f},{py:.0f})")
@@ -554,7 +572,8 @@ def _measure(path, rgb, camera, pick_xy, want_cloud, want_debug, sess: Session, 
         tm["cloud"] = 1000 * (time.perf_counter() - t)
     if want_debug:
         res.debug.update(image=img, image_scale=(sx, sy), rope_polyline=np.asarray(rope.polyline),
-                         tree_mask=tree_mask)
+                         tree_mask=tree_mask, rope_thickness_px=rope_T, rope_thickness_native_px=rope_T_native,
+                         rope_contrast=rope_contrast, rope_flags=list(rope_flags))
     # the geometry step's own time (it called the tree network and the vanishing point)
     for k in ("vanishing", "geometry"):
         if k in res.timings_ms:

@@ -6,7 +6,9 @@ The pipeline asks it only where the band detector (:mod:`.rope`) and the mask-gu
 search (:mod:`.rope_stem`) found no rope. A candidate is the rope when it is confident
 (peak log-odds >= :data:`FINDER_MIN_PEAK` and summed probability >= :data:`FINDER_MIN_MASS`,
 about that many output pixels of 2 x 2 photo pixels), band-shaped (length >=
-:data:`FINDER_MIN_ELONGATION` thicknesses and >= :data:`FINDER_MIN_LENGTH_PX`), and no other
+:data:`FINDER_MIN_ELONGATION` thicknesses and >= :data:`FINDER_MIN_LENGTH_PX`, and across the
+stem: within :data:`FINDER_MAX_TILT_DEG` of horizontal, so a vertical paint mark or hanging
+rope end is no band), and no other
 candidate comes close (:data:`FINDER_RIVAL_SHARE` of its mass: two roped trees, or a rope and a
 red thing the finder cannot tell apart, then the user picks). Thresholds chosen on the
 calibration sets (seeds 9100-9600), see ``docs/STATUS.md``, session 12.
@@ -26,14 +28,18 @@ import numpy as np
 from .rope import RopeDetection
 
 __all__ = ["FINDER_MIN_PEAK", "FINDER_MIN_MASS", "FINDER_MIN_ELONGATION", "FINDER_MIN_LENGTH_PX",
-           "FINDER_RIVAL_SHARE", "FINDER_PICK_RADIUS_PX", "FINDER_PICK_MIN_PEAK", "FINDER_PICK_MIN_MASS", "band_shaped",
-           "distance_to_segment", "rope_from_finder"]
+           "FINDER_RIVAL_SHARE", "FINDER_MAX_TILT_DEG", "FINDER_PICK_RADIUS_PX", "FINDER_PICK_MIN_PEAK", "FINDER_PICK_MIN_MASS", "band_shaped",
+           "distance_to_segment", "rope_from_finder", "FINDER_SUPPORT_RADIUS_PX", "FINDER_SUPPORT_MIN_PEAK",
+           "finder_support", "finder_check"]
 
 FINDER_MIN_PEAK: float = 6.0
 FINDER_MIN_MASS: float = 6.0
 FINDER_MIN_ELONGATION: float = 3.0
 FINDER_MIN_LENGTH_PX: float = 6.0
 FINDER_RIVAL_SHARE: float = 0.5
+#: the band runs across a standing stem: at most this far from the photo's horizontal (camera
+#: roll, lean and the tilt of stems near the photo's edges stay well within it)
+FINDER_MAX_TILT_DEG: float = 45.0
 #: at a user's tap (``--pick``): a candidate passing within this many pixels of it, at lower
 #: confidence (the tap says where the rope is)
 FINDER_PICK_RADIUS_PX: float = 15.0
@@ -42,8 +48,11 @@ FINDER_PICK_MIN_MASS: float = 2.0
 
 
 def band_shaped(c) -> bool:
-    """Is candidate ``c`` a band (long against its thickness, not a blob)?"""
-    return c.length_px >= FINDER_MIN_ELONGATION * c.thickness_px and c.length_px >= FINDER_MIN_LENGTH_PX
+    """Is candidate ``c`` a band across a stem (long against its thickness, not a blob; not steeper
+    than :data:`FINDER_MAX_TILT_DEG`)?"""
+    tilt = np.degrees(np.arctan2(abs(float(c.direction[1])), abs(float(c.direction[0])) + 1e-12))
+    return (c.length_px >= FINDER_MIN_ELONGATION * c.thickness_px and c.length_px >= FINDER_MIN_LENGTH_PX
+            and tilt <= FINDER_MAX_TILT_DEG)
 
 
 def distance_to_segment(c, xy) -> float:
@@ -101,3 +110,70 @@ def rope_from_finder(components, shape: tuple[int, int], *, pick_xy=None, min_pe
     mask[yi[keep], xi[keep]] = True
     return RopeDetection(True, "", center_xy=best.center_xy, direction=best.direction, polyline=pts.astype(np.float32),
                          thickness_px=float(best.thickness_px), mask=mask, score=float(best.peak))
+
+
+#: the cross-check of a rope found by the band detector or the stem search: a finder candidate
+#: passing within this many pixels (or half its thickness + 4) of the rope's centre supports it
+FINDER_SUPPORT_RADIUS_PX: float = 8.0
+#: ... at these log-odds or more (p 0.73: any evidence at all). Calibration sets (seeds
+#: 9100-9600): the 314 right ropes the pipeline measured had support >= 2.77, the 2 wrong ones
+#: (red leaves in a rope-free scene, tape on another tree) none; see ``docs/STATUS.md``, session 15
+FINDER_SUPPORT_MIN_PEAK: float = 1.0
+
+
+def finder_support(components, xy) -> float:
+    """The highest log-odds of the finder candidates passing near ``xy`` (``-inf`` when none).
+
+    Near: within ``max(FINDER_SUPPORT_RADIUS_PX, thickness / 2 + 4)`` photo pixels of the
+    candidate's centre line.
+    """
+    near = [c.peak for c in components
+            if distance_to_segment(c, xy) <= max(FINDER_SUPPORT_RADIUS_PX, 0.5 * c.thickness_px + 4.0)]
+    return float(max(near)) if near else float("-inf")
+
+
+def finder_check(rope, components, shape: tuple[int, int]) -> tuple[str, RopeDetection | None]:
+    """The rope finder's verdict on a rope found by the classical detectors.
+
+    The band detector can take a red band that is no rope (tape on another tree, red leaves,
+    a jacket's edge) where the real rope is faint to it, and the stem search a red row of bark.
+    The finder, trained with such distractors, marks nearly every rope those two find, thin
+    ones included (calibration sets: every right rope measured had log-odds >= 2.77 at its
+    centre), and is rarely wrong when it is confident. So:
+
+    - ``("supported", None)``: a finder candidate passes through the rope
+      (:func:`finder_support` >= :data:`FINDER_SUPPORT_MIN_PEAK`): keep it;
+    - ``("replaced", det)``: no support, and the finder accepts a band of its own elsewhere
+      (:func:`rope_from_finder`, the shipped rule): that band is the rope;
+    - ``("unsupported", None)``: no support and no band of the finder's: the band is no rope
+      as far as the photo shows (the user can still tap it: ``--pick`` skips this check).
+
+    Parameters
+    ----------
+    rope : RopeDetection found by the band detector or the stem search (working-image pixels).
+    components : the finder's candidates on the same image, best first.
+    shape : (H, W) of the image.
+
+    Returns
+    -------
+    (verdict, RopeDetection or None)
+
+    Examples
+    --------
+    >>> from monodbh.models.runtime_ropeseg import rope_components
+    >>> z = np.full((100, 100), -8.0, np.float32); z[50, 20:70] = 8.0       # the finder's rope
+    >>> tape = RopeDetection(True, "", center_xy=(90.0, 20.0), direction=(1.0, 0.0))
+    >>> verdict, alt = finder_check(tape, rope_components(z), (200, 200))
+    >>> verdict, [round(v) for v in alt.center_xy]
+    ('replaced', [90, 100])
+    >>> finder_check(alt, rope_components(z), (200, 200))[0]
+    'supported'
+    >>> finder_check(tape, [], (200, 200))[0]
+    'unsupported'
+    """
+    if finder_support(components, rope.center_xy) >= FINDER_SUPPORT_MIN_PEAK:
+        return "supported", None
+    alt = rope_from_finder(components, shape)
+    if alt:
+        return "replaced", alt
+    return "unsupported", None
