@@ -68,6 +68,30 @@ def gt_rope_px(meta: dict) -> Optional[float]:
         return None
 
 
+#: a measured photo's rope (``rope_xy``) farther than this fraction of the photo's long side from
+#: every pixel of the roped tree's true rope is another band: a wrong tree was measured
+WRONG_ROPE_FRACTION = 0.012
+
+
+def on_true_rope(stem: Path, meta: dict, rope_xy) -> Optional[bool]:
+    """Does the reported rope centre ``rope_xy`` (photo pixels) lie on the roped tree's true rope?
+
+    None when the sample has no rope, no reported rope or no ``.npz`` ground truth.
+    """
+    import numpy as np
+
+    k = meta.get("roped_tree")
+    npz = stem.with_suffix(".npz")
+    if not k or rope_xy is None or not npz.is_file():
+        return None
+    with np.load(npz) as z:
+        ys, xs = np.nonzero(z["rope"] & (z["instance"] == k))
+    if not len(xs):
+        return None
+    tol = WRONG_ROPE_FRACTION * max(int(meta["width"]), int(meta["height"]))
+    return bool(np.min(np.hypot(xs - float(rope_xy[0]), ys - float(rope_xy[1]))) <= tol)
+
+
 #: thickness bins (pixels, lower edges) of the per-rope-thickness detection table
 ROPE_PX_BINS = (0.0, 1.0, 2.0, 3.0, 5.0)
 
@@ -111,7 +135,9 @@ def eval_metrics(records: Sequence[dict]) -> dict:
         ``p90_abs_err_cm``, ``coverage_1sigma``, ``coverage_2sigma`` (fractions of measured roped
         samples with a sigma whose ``|err| <= k sigma``), ``refusal_rate`` (no-rope scenes
         correctly refused), ``false_measurements`` (no-rope scenes given a DBH),
-        ``failure_reasons`` (roped scenes' error messages, counted), ``by_scale_source``,
+        ``wrong_rope`` (measured roped samples whose rope is another band: a wrong tree measured,
+        of ``rope_checked`` with ground truth to tell), ``failure_reasons`` (roped scenes' error
+        messages, counted), ``by_scale_source``,
         ``by_rope_px`` (detection rate and MAE per bin of ``gt_rope_px``, where records have it).
     """
     roped = [r for r in records if r.get("gt_dbh_cm") is not None]
@@ -123,6 +149,7 @@ def eval_metrics(records: Sequence[dict]) -> dict:
     with_sigma = [(abs(e), float(r["dbh_sigma_cm"])) for e, r in zip(err, meas)
                   if r.get("dbh_sigma_cm") is not None and float(r["dbh_sigma_cm"]) > 0]
     refused = [r for r in norope if r.get("error") is not None or r.get("dbh_cm") is None]
+    checked = [r for r in meas if r.get("on_true_rope") is not None]
     reasons: dict[str, int] = {}
     for r in roped:
         if r.get("error") is not None:
@@ -144,6 +171,8 @@ def eval_metrics(records: Sequence[dict]) -> dict:
         "with_sigma": len(with_sigma),
         "refusal_rate": len(refused) / len(norope) if norope else None,
         "false_measurements": len(norope) - len(refused),
+        "wrong_rope": sum(1 for r in checked if not r["on_true_rope"]),
+        "rope_checked": len(checked),
         "failure_reasons": dict(sorted(reasons.items(), key=lambda kv: -kv[1])),
         "by_scale_source": _by_source(meas),
         "by_rope_px": _by_rope_px(roped),
@@ -211,6 +240,8 @@ def _print_eval(m: dict, stages: dict, console) -> None:
         ("no-rope scenes correctly refused", f"{_fmt(m['refusal_rate'], pct=True)}"
                                             f" ({m['false_measurements']} measured)"),
     ]
+    if m.get("rope_checked"):
+        rows.insert(2, ("measured on another band (wrong tree)", f"{m['wrong_rope']} of {m['rope_checked']}"))
     for r in rows:
         t.add_row(*r)
     console.print(t)
@@ -320,7 +351,7 @@ def evaluate(
         idx = idx[:limit]
     if not idx:
         raise fail(f"{folder}: no samples (NNNNNN.jpg + .json{' + .npz' if need_npz else ''})")
-    jobs, metas = [], []
+    jobs, metas, meta_of = [], [], {}
     for n, i in enumerate(idx):
         stem = folder / f"{i:06d}"
         try:
@@ -330,6 +361,7 @@ def evaluate(
         except (OSError, ValueError, KeyError, TypeError, IndexError) as exc:
             raise fail(f"{stem.with_suffix('.json')}: bad sample record ({type(exc).__name__}: {exc})")
         metas.append((i, gt, gt_rope_px(meta) if gt is not None else None))
+        meta_of[i] = meta
         base_xy = _simulated_tap(stem, meta, tap_noise_px, i) if tap_base else None
         pick_xy = _simulated_rope_tap(stem, meta, tap_noise_px, i) if tap_rope else None
         rope_m = true_rope_diameter_m(meta) if rope_known else None
@@ -355,9 +387,11 @@ def evaluate(
             task = prog.add_task("evaluating", total=len(jobs))
             for res, (i, gt, rope_px) in zip(iter_results(jobs, backend, workers=workers), metas):
                 d = res.to_json_dict()
+                on = (on_true_rope(folder / f"{i:06d}", meta_of[i], d.get("rope_xy"))
+                      if gt is not None and d["dbh_cm"] is not None else None)
                 records.append({"sample": i, "gt_dbh_cm": gt, "gt_rope_px": rope_px,
                                 "err_cm": (d["dbh_cm"] - gt if gt is not None and d["dbh_cm"] is not None
-                                           else None), **d})
+                                           else None), "on_true_rope": on, **d})
                 prog.advance(task)
     except KeyboardInterrupt:
         interrupted = True

@@ -187,3 +187,22 @@ def test_bench_fresh_process(tmp_path, monkeypatch):
     assert d["repeat"] == 2 and len(d["runs"]) == 3 and d["stages_ms"]["segment"] == pytest.approx(10.0)
     assert 0 < d["import_s"] < d["startup_s"] and d["peak_mib"] > 10 and set(d["pass"]) == {"startup_s", "per_photo_s", "peak_mib"}
     assert "start-up" in r.stdout and "peak memory" in r.stdout
+
+
+def test_a_measurement_on_another_band_counts_as_a_wrong_tree(tmp_path):
+    from monodbh.cli.eval_cmd import on_true_rope
+
+    meta = {"roped_tree": 2, "width": 1280, "height": 960}
+    rope = np.zeros((960, 1280), bool)
+    rope[500, 300:340] = True
+    inst = np.zeros((960, 1280), np.uint16)
+    inst[:, 290:350] = 2
+    np.savez(tmp_path / "000000.npz", rope=rope, instance=inst)
+    stem = tmp_path / "000000"
+    assert on_true_rope(stem, meta, (320.0, 503.0)) is True
+    assert on_true_rope(stem, meta, (700.0, 500.0)) is False          # tape on another tree
+    assert on_true_rope(stem, meta, None) is None
+    assert on_true_rope(stem, {**meta, "roped_tree": None}, (320.0, 500.0)) is None
+    m = eval_metrics([{"gt_dbh_cm": 30.0, "dbh_cm": 31.0, "dbh_sigma_cm": 2.0, "error": None, "on_true_rope": True},
+                      {"gt_dbh_cm": 30.0, "dbh_cm": 45.0, "dbh_sigma_cm": 2.0, "error": None, "on_true_rope": False}])
+    assert m["wrong_rope"] == 1 and m["rope_checked"] == 2

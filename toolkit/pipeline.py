@@ -210,6 +210,22 @@ def _to_work_pixel(xy, scale, cam_distorted, cam_work) -> np.ndarray:
     return cam_distorted.undistort_points(p, K_new=cam_work.K)[0]
 
 
+def _to_photo_pixel(xy, scale, cam_distorted, cam_work) -> np.ndarray:
+    """A working-image pixel ``(x, y)`` (downscaled, undistorted) -> the photo's own pixel ``(2,)``.
+
+    The inverse of :func:`_to_work_pixel`: a point the pipeline reports (the rope's centre, a
+    refused band) lands on the same place of the photo the user looks at, and ``--pick`` with
+    those coordinates reaches it again.
+    """
+    sx, sy = scale
+    p = np.asarray(xy, np.float64)
+    if cam_distorted is not cam_work and np.any(np.asarray(cam_distorted.dist) != 0):
+        K = np.asarray(cam_work.K, np.float64)
+        ray = np.array([[(p[0] - K[0, 2]) / K[0, 0], (p[1] - K[1, 2]) / K[1, 1], 1.0]])
+        p = cam_distorted.project(ray)[0]
+    return np.array([(p[0] + 0.5) / sx - 0.5, (p[1] + 0.5) / sy - 0.5])
+
+
 def _polyline_span(polyline) -> float | None:
     """End-to-end length (pixels) of a rope centre line ``(N, 2)``; None when missing."""
     if polyline is None or len(polyline) < 2:
@@ -462,19 +478,23 @@ def _measure(path, rgb, camera, pick_xy, want_cloud, want_debug, sess: Session, 
         if verdict == "replaced":
             rope, rope_flags = alt, ["rope_found_by_network", "rope_chosen_by_network"]
         elif verdict == "unsupported":
-            x, y = rope.center_xy
-            raise MonodbhError(f"{path}: no red rope found (the red band at ({x / sx:.0f},{y / sy:.0f}) does not "
+            x, y = _to_photo_pixel(rope.center_xy, (sx, sy), cw, cam)
+            raise MonodbhError(f"{path}: no red rope found (the red band at ({x:.0f},{y:.0f}) does not "
                                f"look like a rope to the rope finder; --pick X,Y to measure there)")
     if pick_missed:
         px, py = pick_xy
         raise MonodbhError(f"{path}: no red rope found at the picked point ({px:.0f},{py:.0f})")
     tm["rope"] = 1000 * (time.perf_counter() - t)
     if weak_refused:
-        x, y = rope.center_xy
-        raise MonodbhError(f"{path}: no red rope found (a faint red band at ({x / sx:.0f},{y / sy:.0f}) does not "
+        x, y = _to_photo_pixel(rope.center_xy, (sx, sy), cw, cam)
+        raise MonodbhError(f"{path}: no red rope found (a faint red band at ({x:.0f},{y:.0f}) does not "
                            f"lie across a segmented trunk; --pick X,Y to measure there)")
     if not rope:
-        raise MonodbhError(f"{path}: {rope.reason}")
+        # the detectors name places in working-image pixels: the user sees (and taps) the photo's
+        import re
+        reason = re.sub(r"\((-?\d+),(-?\d+)\)", lambda g: "({:.0f},{:.0f})".format(
+            *_to_photo_pixel((float(g[1]), float(g[2])), (sx, sy), cw, cam)), rope.reason)
+        raise MonodbhError(f"{path}: {reason}")
     tid = _roped_instance(seg.instance, rope.center_xy, radius=max(6, int(round(cell))))
     if tid == 0:
         # the segmenter missed the roped stem: the rope band spans the visible trunk, so a
@@ -556,7 +576,7 @@ def _measure(path, rgb, camera, pick_xy, want_cloud, want_debug, sess: Session, 
     res.flags = list(res.flags or []) + flags_extra
     res.tree_id = int(tid)
     if res.rope_xy is not None:
-        res.rope_xy = [res.rope_xy[0] / sx, res.rope_xy[1] / sy]
+        res.rope_xy = [float(v) for v in _to_photo_pixel(res.rope_xy, (sx, sy), cw, cam)]
     if res.error:
         res.error = f"{path}: {res.error}"
         return res
