@@ -84,3 +84,24 @@ def test_finder_check_keeps_supported_ropes_replaces_or_refuses_the_others():
     assert finder_check(tape, faint, (400, 600)) == ("unsupported", None)
     # a faint finder candidate through the band still supports it (a thin rope)
     assert finder_check(on, faint, (400, 600))[0] == "supported"
+
+
+def test_components_near_look_at_one_tile_in_photo_pixels():
+    import cv2
+
+    from monodbh.models.runtime_ropeseg import RopeFinder
+
+    finder = RopeFinder()
+    rng = np.random.default_rng(0)
+    img = np.clip(rng.normal(90, 12, (900, 1200, 3)), 0, 255).astype(np.uint8)
+    img[:, 700:780] = (70, 55, 40)                                   # a trunk
+    cv2.line(img, (700, 601), (779, 603), (200, 30, 25), 4)          # a red rope across it
+    near = finder.components_near(img, (740.0, 602.0))
+    whole = finder.components(img)
+    T = finder.tile
+    for c in near:                                                   # inside the tile around the point
+        assert 740 - T / 2 - 2 <= c.center_xy[0] <= 740 + T / 2 + 2 and 602 - T / 2 - 2 <= c.center_xy[1] <= 602 + T / 2 + 2
+        assert np.allclose(np.mean(c.polyline, 0), c.center_xy, atol=0.6 * c.length_px + 2)
+    # the band the whole-photo map finds at the rope is found by the one tile too, at the same place
+    at_rope = [c for c in whole if distance_to_segment(c, (740.0, 602.0)) < 6]
+    assert at_rope and any(distance_to_segment(c, (740.0, 602.0)) < 6 for c in near)

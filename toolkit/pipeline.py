@@ -473,7 +473,9 @@ def _measure(path, rgb, camera, pick_xy, want_cloud, want_debug, sess: Session, 
         # tape or leaves taken where the real rope was faint to the band detector)
         from .rope_finder import finder_check
         t_f = time.perf_counter()
-        verdict, alt = finder_check(rope, sess.rope_finder.components(img), (h, w))
+        # one tile around the band (about 20 ms) tells support; the whole photo only without it
+        verdict, alt = finder_check(rope, sess.rope_finder.components_near(img, rope.center_xy), (h, w),
+                                    whole=lambda: sess.rope_finder.components(img))
         tm["rope_finder"] = 1000 * (time.perf_counter() - t_f)
         if verdict == "replaced":
             rope, rope_flags = alt, ["rope_found_by_network", "rope_chosen_by_network"]
@@ -576,6 +578,7 @@ def _measure(path, rgb, camera, pick_xy, want_cloud, want_debug, sess: Session, 
     res.flags = list(res.flags or []) + flags_extra
     res.tree_id = int(tid)
     if res.rope_xy is not None:
+        res.debug["rope_xy"] = np.asarray(res.rope_xy, np.float64)      # working-image pixels (the overlay's)
         res.rope_xy = [float(v) for v in _to_photo_pixel(res.rope_xy, (sx, sy), cw, cam)]
     if res.error:
         res.error = f"{path}: {res.error}"

@@ -132,7 +132,7 @@ def finder_support(components, xy) -> float:
     return float(max(near)) if near else float("-inf")
 
 
-def finder_check(rope, components, shape: tuple[int, int]) -> tuple[str, RopeDetection | None]:
+def finder_check(rope, components, shape: tuple[int, int], whole=None) -> tuple[str, RopeDetection | None]:
     """The rope finder's verdict on a rope found by the classical detectors.
 
     The band detector can take a red band that is no rope (tape on another tree, red leaves,
@@ -151,8 +151,11 @@ def finder_check(rope, components, shape: tuple[int, int]) -> tuple[str, RopeDet
     Parameters
     ----------
     rope : RopeDetection found by the band detector or the stem search (working-image pixels).
-    components : the finder's candidates on the same image, best first.
+    components : the finder's candidates on the same image (or on one tile around the rope,
+        :meth:`~monodbh.models.runtime_ropeseg.RopeFinder.components_near`), best first.
     shape : (H, W) of the image.
+    whole : optional callable returning the candidates of the whole image, called only when
+        ``components`` do not support the rope (the finder's own band may be anywhere).
 
     Returns
     -------
@@ -173,7 +176,7 @@ def finder_check(rope, components, shape: tuple[int, int]) -> tuple[str, RopeDet
     """
     if finder_support(components, rope.center_xy) >= FINDER_SUPPORT_MIN_PEAK:
         return "supported", None
-    alt = rope_from_finder(components, shape)
+    alt = rope_from_finder(whole() if whole is not None else components, shape)
     if alt:
         return "replaced", alt
     return "unsupported", None
