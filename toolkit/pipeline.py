@@ -483,6 +483,19 @@ def _measure(path, rgb, camera, pick_xy, want_cloud, want_debug, sess: Session, 
             x, y = _to_photo_pixel(rope.center_xy, (sx, sy), cw, cam)
             raise MonodbhError(f"{path}: no red rope found (the red band at ({x:.0f},{y:.0f}) does not "
                                f"look like a rope to the rope finder; --pick X,Y to measure there)")
+    elif (ROPE_FINDER_CROSS_CHECK and sess.rope_finder is not None and pick is not None and rope
+          and not rope_flags):
+        # at a tap the band detector's band may lie up to two mask cells off (a band beside the
+        # rope's end); where the finder marks a band right at the tap, that is what was tapped
+        from .rope_finder import FINDER_PICK_RADIUS_PX, FINDER_SUPPORT_MIN_PEAK, finder_support, rope_from_finder
+        if _dist_to_band(rope, pick) > FINDER_PICK_RADIUS_PX:
+            t_f = time.perf_counter()
+            comps = sess.rope_finder.components_near(img, pick)
+            if finder_support(comps, rope.center_xy) < FINDER_SUPPORT_MIN_PEAK:
+                alt = rope_from_finder(comps, (h, w), pick_xy=pick)
+                if alt:
+                    rope, rope_flags = alt, ["rope_found_by_network"]
+            tm["rope_finder"] = 1000 * (time.perf_counter() - t_f)
     if pick_missed:
         px, py = pick_xy
         raise MonodbhError(f"{path}: no red rope found at the picked point ({px:.0f},{py:.0f})")
