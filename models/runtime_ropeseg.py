@@ -100,6 +100,16 @@ def _moments(ys: np.ndarray, xs: np.ndarray, w: np.ndarray):
     return cx, cy, d, ev
 
 
+def _extent(ys: np.ndarray, xs: np.ndarray, w: np.ndarray, stride: int):
+    """Weighted centre (cells), direction, positions along it (cells), length and thickness
+    (photo pixels: 4 weighted standard deviations across, >= 1) of a piece's cells."""
+    cx, cy, d, ev = _moments(ys.astype(np.float64), xs.astype(np.float64), w)
+    t = (xs - cx) * d[0] + (ys - cy) * d[1]
+    length = (float(t.max() - t.min()) + 1.0) * stride
+    thick = max(1.0, 4.0 * np.sqrt(max(ev[0], 0.0)) * stride)
+    return cx, cy, d, t, length, thick
+
+
 def knot_band(ys: np.ndarray, xs: np.ndarray, max_tilt_deg: float = KNOT_MAX_TILT_DEG,
               max_radius_frac: float = KNOT_MAX_RADIUS_FRACTION) -> np.ndarray | None:
     """The band across the stem of a rope piece that also holds its knot and hanging ends.
@@ -223,20 +233,14 @@ def rope_components(logit: np.ndarray, stride: int = 2, lo: float = LOGIT_LO,
         ys = np.concatenate([pieces[k][0] for k in members])
         xs = np.concatenate([pieces[k][1] for k in members])
         w = p[ys, xs].astype(np.float64)
-        cx, cy, d, ev = _moments(ys.astype(np.float64), xs.astype(np.float64), w)
-        t = (xs - cx) * d[0] + (ys - cy) * d[1]
-        length = (float(t.max() - t.min()) + 1.0) * stride
-        thick = max(1.0, 4.0 * np.sqrt(max(ev[0], 0.0)) * stride)
+        cx, cy, d, t, length, thick = _extent(ys, xs, w, stride)
         trimmed = False
         if length < 3.0 * thick:
             # too thick for a band: a knot with hanging ends? keep the band across the stem
             keep = knot_band(ys, xs)
             if keep is not None:
                 ys, xs, w, trimmed = ys[keep], xs[keep], w[keep], True
-                cx, cy, d, ev = _moments(ys.astype(np.float64), xs.astype(np.float64), w)
-                t = (xs - cx) * d[0] + (ys - cy) * d[1]
-                length = (float(t.max() - t.min()) + 1.0) * stride
-                thick = max(1.0, 4.0 * np.sqrt(max(ev[0], 0.0)) * stride)
+                cx, cy, d, t, length, thick = _extent(ys, xs, w, stride)
         c = (stride * cx + 0.5 * (stride - 1), stride * cy + 0.5 * (stride - 1))
         # end points: the outer photo pixels of the end cells (the extent is a whole number of cells)
         lo = stride * t.min() - 0.5 * (stride - 1)

@@ -220,9 +220,8 @@ def _to_photo_pixel(xy, scale, cam_distorted, cam_work) -> np.ndarray:
     sx, sy = scale
     p = np.asarray(xy, np.float64)
     if cam_distorted is not cam_work and np.any(np.asarray(cam_distorted.dist) != 0):
-        K = np.asarray(cam_work.K, np.float64)
-        ray = np.array([[(p[0] - K[0, 2]) / K[0, 0], (p[1] - K[1, 2]) / K[1, 1], 1.0]])
-        p = cam_distorted.project(ray)[0]
+        n = cam_work.undistort_points(p[None], normalized=True)[0]       # cam_work is a pinhole
+        p = cam_distorted.project(np.array([[n[0], n[1], 1.0]]))[0]
     return np.array([(p[0] + 0.5) / sx - 0.5, (p[1] + 0.5) / sy - 0.5])
 
 
