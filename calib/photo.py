@@ -128,6 +128,42 @@ def _cv2_fallback(p: Path, gray: bool) -> np.ndarray | None:
     return cv2.cvtColor(img, cv2.COLOR_BGR2GRAY if gray else cv2.COLOR_BGR2RGB)
 
 
+def _fast_jpeg(im, p: Path) -> np.ndarray | None:
+    """A plain upright RGB JPEG decoded by OpenCV straight into an array, or None.
+
+    ``PIL``'s decode, ``exif_transpose`` copy and array conversion take 250 ms for a 12 MP photo
+    on the project's machine, ``cv2.imdecode`` 80-90 ms with the same pixels (both libjpeg-turbo,
+    tested). Only a complete (ends with the JPEG end-of-image marker), 8-bit RGB JPEG with no
+    rotating EXIF orientation takes this path; everything else (truncated files, which OpenCV
+    would decode silently, rotated, gray, CMYK, trailing data after the image) goes through PIL
+    as before.
+    """
+    if im.format != "JPEG" or im.mode != "RGB":
+        return None
+    try:
+        orient = im.getexif().get(_EXIF_ORIENTATION_TAG, 1)
+    except Exception:  # noqa: BLE001 - malformed EXIF: PIL's path decides
+        return None
+    if orient not in (None, 0, 1):
+        return None
+    import cv2
+
+    try:
+        buf = np.fromfile(str(p), dtype=np.uint8)
+    except OSError:
+        return None
+    if buf.size < 4 or buf[-2] != 0xFF or buf[-1] != 0xD9:
+        return None
+    flags = cv2.IMREAD_COLOR_RGB | cv2.IMREAD_IGNORE_ORIENTATION
+    try:
+        a = cv2.imdecode(buf, flags)
+    except cv2.error:
+        return None
+    if a is None or a.shape[:2] != (im.size[1], im.size[0]):
+        return None
+    return a
+
+
 def load_photo(path: PathLike, *, gray: bool = False) -> np.ndarray:
     """Read a photo as 8-bit RGB, upright as a viewer shows it.
 
@@ -156,6 +192,11 @@ def load_photo(path: PathLike, *, gray: bool = False) -> np.ndarray:
     """
     p = _check_file(path)
     im = _open(p)
+    if im is not None and not gray:
+        arr = _fast_jpeg(im, p)
+        if arr is not None:
+            im.close()
+            return arr
     if im is None:
         arr = _cv2_fallback(p, gray)
         if arr is None:

@@ -40,6 +40,8 @@ __all__ = ["MODELS_DIR", "MANIFEST_PATH", "SPEC_METADATA_KEY", "MonodbhError", "
 
 MODELS_DIR = Path(__file__).resolve().parent
 MANIFEST_PATH = MODELS_DIR / "manifest.json"
+#: onnxruntime's intra-op threads spin between work items (its default); off: they sleep
+ORT_SPIN = os.environ.get("MONODBH_ORT_SPIN", "0") == "1"
 SPEC_METADATA_KEY = "monodbh_spec"  # same as monodbh.models.export.onnx_io.SPEC_METADATA_KEY
 
 _INTERP = {"area": cv2.INTER_AREA, "linear": cv2.INTER_LINEAR, "nearest": cv2.INTER_NEAREST,
@@ -123,6 +125,10 @@ class OnnxPredictor:
         so.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
         so.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
         so.log_severity_level = 3
+        if not ORT_SPIN:
+            # idle pool threads sleep instead of spinning: the pipeline runs the depth network
+            # beside the rope search, and spinning threads take the rope search's core
+            so.add_session_config_entry("session.intra_op.allow_spinning", "0")
         try:
             self.session = ort.InferenceSession(str(self.path), so,
                                                 providers=["CPUExecutionProvider"])

@@ -25,6 +25,32 @@ def test_rgb_jpeg(tmp_path):
     assert read_image_size(p) == (40, 20)
 
 
+def test_fast_jpeg_path_same_pixels_as_pil(tmp_path):
+    """Upright RGB JPEGs are decoded by OpenCV (3x faster at 12 MP); the pixels must be PIL's."""
+    from monodbh.calib import photo
+
+    rng = np.random.default_rng(0)
+    a = np.clip(rng.normal(128, 60, (90, 130, 3)), 0, 255).astype(np.uint8)
+    p = tmp_path / "n.jpg"
+    Image.fromarray(a).save(p, quality=90)
+    with Image.open(p) as im:
+        fast = photo._fast_jpeg(im, p)
+        im.load()
+        ref = np.asarray(im)
+    assert fast is not None and fast.shape == ref.shape and fast.flags.c_contiguous
+    assert np.array_equal(fast, ref) and np.array_equal(load_photo(p), ref)
+    # rotated, truncated and trailing-data JPEGs are left to PIL
+    exif = Image.Exif()
+    exif[0x0112] = 6
+    Image.fromarray(a).save(tmp_path / "r.jpg", quality=90, exif=exif)
+    (tmp_path / "t.jpg").write_bytes(p.read_bytes()[:-200])
+    (tmp_path / "x.jpg").write_bytes(p.read_bytes() + b"trailer")
+    for name in ("r.jpg", "t.jpg", "x.jpg"):
+        with Image.open(tmp_path / name) as im:
+            assert photo._fast_jpeg(im, tmp_path / name) is None, name
+    assert np.array_equal(load_photo(tmp_path / "x.jpg"), ref)
+
+
 @pytest.mark.parametrize("orientation, corner", [(6, (0, -1)), (8, (-1, 0)), (3, (-1, -1))])
 def test_exif_orientation_applied(tmp_path, orientation, corner):
     """Orientation 6 = rotate 90 CW to display: stored top-left lands at the top-right."""

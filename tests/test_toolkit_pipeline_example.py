@@ -25,6 +25,24 @@ def test_example_measured_within_its_sigma(session):
     assert r.scale_source and r.distance_m > 0
 
 
+def test_depth_beside_the_rope_search_changes_nothing(session, monkeypatch):
+    """The depth network runs on a background thread while the rope is searched: the result is
+    the sequential one, and a failure in the thread reaches the caller as an error."""
+    cam = load_camera(EX / "cam.yaml")
+    monkeypatch.setattr(pl, "OVERLAP_DEPTH", False)
+    seq = pl.measure_photo(str(EX / "example.jpg"), cam, session=session)
+    monkeypatch.setattr(pl, "OVERLAP_DEPTH", True)
+    par = pl.measure_photo(str(EX / "example.jpg"), cam, session=session)
+    assert seq.error is None and par.dbh_cm == seq.dbh_cm and par.distance_m == seq.distance_m
+    assert par.flags == seq.flags
+
+    def broken(*a):
+        raise pl.MonodbhError("depth network failed")
+    monkeypatch.setattr(session.depth, "predict", broken)
+    bad = pl.measure_photo(str(EX / "example.jpg"), cam, session=session)
+    assert bad.dbh_cm is None and "depth network failed" in bad.error
+
+
 def test_pick_away_from_the_rope_is_an_error_not_another_band(session):
     """A tap where there is no rope must not silently measure some band elsewhere."""
     cam = load_camera(EX / "cam.yaml")

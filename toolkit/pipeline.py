@@ -32,6 +32,9 @@ ROPE_FULL_RES = True
 #: nothing at the chosen band, its own confident band replaces it, or the photo is refused
 #: (``rope_finder.finder_check``)
 ROPE_FINDER_CROSS_CHECK = True
+#: the depth network runs on a background thread while the rope is searched (12 MP photo on the
+#: project's 2-core machine: 1.02 -> 0.77 s, docs/STATUS.md session 16)
+OVERLAP_DEPTH = True
 #: the depth network sees the photo and its mirror image (see :class:`~monodbh.models.runtime_gan.DepthPredictor`)
 DEPTH_FLIP_TTA = True
 
@@ -94,7 +97,41 @@ class Session:
         self.rank_network = em.get("rank")
         self.distance_calibration = em.get("distance_calibration")
         self.error_model_stale = bool(manifest.get("error_model")) and not em
+        self._pool = None
         self.load_ms = 1000 * (time.perf_counter() - t0)
+
+    def background(self, fn, *args) -> "_Job":
+        """Run ``fn(*args)`` on the session's one background thread; ``.result()`` waits for it
+        (and re-raises its exception). With :data:`OVERLAP_DEPTH` off the call runs at
+        ``.result()``."""
+        if not OVERLAP_DEPTH:
+            return _Job(None, fn, args)
+        if self._pool is None:
+            from concurrent.futures import ThreadPoolExecutor
+            self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="monodbh-depth")
+        return _Job(self._pool.submit(fn, *args), fn, args)
+
+
+class _Job:
+    """A background call's handle: a future, or a call deferred to :meth:`result` when the
+    overlap is off."""
+
+    def __init__(self, fut, fn, args):
+        self._fut, self._fn, self._args = fut, fn, args
+        self._done, self._value = False, None
+
+    def result(self):
+        if self._fut is not None:
+            return self._fut.result()
+        if not self._done:
+            self._value, self._done = self._fn(*self._args), True
+        return self._value
+
+    def wait(self) -> None:
+        """Block until a background call has finished (its exception, if any, is not raised)."""
+        if self._fut is not None:
+            from concurrent.futures import wait
+            wait([self._fut])
 
 
 #: the shipped networks the measured error model depends on (those shipped; basenet is optional;
@@ -408,6 +445,22 @@ def _measure(path, rgb, camera, pick_xy, want_cloud, want_debug, sess: Session, 
     seg = sess.segmenter.predict(img, size=(w, h))
     tm["segment"] = 1000 * (time.perf_counter() - t)
     trees_union = seg.instance > 0
+    # the depth network needs only the photo and the trees: it runs beside the rope search
+    # (onnxruntime releases the GIL; the rope search is mostly single-threaded numpy / OpenCV)
+    depth_job = sess.background(sess.depth.predict, img, trees_union, float(cam.K[0, 0]))
+    try:
+        return _measure_rest(path, rgb, camera, pick_xy, want_cloud, want_debug, sess, tm, base_xy,
+                             rope_diameter_m, img, cam, (sx, sy), cw, seg, trees_union, depth_job)
+    finally:
+        # a refused photo still lets its depth run finish (the next photo gets both cores)
+        depth_job.wait()
+
+
+def _measure_rest(path, rgb, camera, pick_xy, want_cloud, want_debug, sess, tm, base_xy, rope_diameter_m,
+                  img, cam, scale, cw, seg, trees_union, depth_job):
+    from .rope import detect_rope
+    sx, sy = scale
+    h, w = img.shape[:2]
 
     # the segmenter's masks are coarse (one mask cell is ``cell`` photo pixels): the rope is
     # searched in the whole photo (measured on 38 roped bench photos: 28 found with no mask vs
@@ -544,7 +597,8 @@ def _measure(path, rgb, camera, pick_xy, want_cloud, want_debug, sess: Session, 
     ground = seg.semantic == 1
 
     t = time.perf_counter()
-    depth = sess.depth.predict(img, trees_union, float(cam.K[0, 0]))
+    depth = depth_job.result()
+    # (the time waited for it here; its own run overlapped the rope search)
     tm["depth"] = 1000 * (time.perf_counter() - t)
 
     tree_out = {}
