@@ -540,8 +540,9 @@ def _print_bench(r: dict, console) -> None:
     t.add_row("first measurement", f"{r['first_run_s']:.3f} s", "", "")
     for k, v in r["stages_ms"].items():
         if k != "total":
-            # the depth network runs on a thread beside the rope search: its stage is the wait
-            name = "depth (wait; runs beside rope)" if k == "depth" else k
+            # the segmenter and the depth network run on a thread beside the rope search: their
+            # stages are the time waited for them
+            name = f"{k} (wait; runs beside rope)" if k in ("segment", "depth") else k
             t.add_row(f"  stage {name}", f"{v:.1f} ms", "", "")
     t.add_row("per photo (wall, median)", f"{r['per_photo_s']:.3f} s", f"<= {tg['per_photo_s']:.1f} s",
               ok("per_photo_s"))

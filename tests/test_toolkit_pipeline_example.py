@@ -26,8 +26,8 @@ def test_example_measured_within_its_sigma(session):
 
 
 def test_depth_beside_the_rope_search_changes_nothing(session, monkeypatch):
-    """The depth network runs on a background thread while the rope is searched: the result is
-    the sequential one, and a failure in the thread reaches the caller as an error."""
+    """The segmenter and the depth network run on a background thread while the rope is searched:
+    the result is the sequential one, and a failure in the thread reaches the caller as an error."""
     cam = load_camera(EX / "cam.yaml")
     monkeypatch.setattr(pl, "OVERLAP_DEPTH", False)
     seq = pl.measure_photo(str(EX / "example.jpg"), cam, session=session)

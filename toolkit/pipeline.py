@@ -32,8 +32,8 @@ ROPE_FULL_RES = True
 #: nothing at the chosen band, its own confident band replaces it, or the photo is refused
 #: (``rope_finder.finder_check``)
 ROPE_FINDER_CROSS_CHECK = True
-#: the depth network runs on a background thread while the rope is searched (12 MP photo on the
-#: project's 2-core machine: 1.02 -> 0.77 s, docs/STATUS.md session 16)
+#: the segmenter and the depth network run on a background thread while the band detector searches
+#: for the rope (see docs/STATUS.md, session 16)
 OVERLAP_DEPTH = True
 #: the depth network sees the photo and its mirror image (see :class:`~monodbh.models.runtime_gan.DepthPredictor`)
 DEPTH_FLIP_TTA = True
@@ -434,30 +434,27 @@ def _measure(path, rgb, camera, pick_xy, want_cloud, want_debug, sess: Session, 
              rope_diameter_m=None):
     import cv2
 
-    from .rope import detect_rope
-    H, W = rgb.shape[:2]
     t = time.perf_counter()
     img, cam, (sx, sy), cw = _work_image(rgb, camera)
     h, w = img.shape[:2]
     tm["undistort"] = 1000 * (time.perf_counter() - t)
 
-    t = time.perf_counter()
-    seg = sess.segmenter.predict(img, size=(w, h))
-    tm["segment"] = 1000 * (time.perf_counter() - t)
-    trees_union = seg.instance > 0
-    # the depth network needs only the photo and the trees: it runs beside the rope search
-    # (onnxruntime releases the GIL; the rope search is mostly single-threaded numpy / OpenCV)
-    depth_job = sess.background(sess.depth.predict, img, trees_union, float(cam.K[0, 0]))
+    # the segmenter, then the depth network (it needs the trees' union), run on a background
+    # thread while the band detector searches the whole photo for the rope (onnxruntime releases
+    # the GIL; the band detector is mostly single-threaded numpy / OpenCV and needs no mask)
+    fx = float(cam.K[0, 0])
+    seg_job = sess.background(lambda: sess.segmenter.predict(img, size=(w, h)))
+    depth_job = sess.background(lambda: sess.depth.predict(img, seg_job.result().instance > 0, fx))
     try:
         return _measure_rest(path, rgb, camera, pick_xy, want_cloud, want_debug, sess, tm, base_xy,
-                             rope_diameter_m, img, cam, (sx, sy), cw, seg, trees_union, depth_job)
+                             rope_diameter_m, img, cam, (sx, sy), cw, seg_job, depth_job)
     finally:
-        # a refused photo still lets its depth run finish (the next photo gets both cores)
+        # a refused photo still lets its networks finish (the next photo gets both cores)
         depth_job.wait()
 
 
 def _measure_rest(path, rgb, camera, pick_xy, want_cloud, want_debug, sess, tm, base_xy, rope_diameter_m,
-                  img, cam, scale, cw, seg, trees_union, depth_job):
+                  img, cam, scale, cw, seg_job, depth_job):
     from .rope import detect_rope
     sx, sy = scale
     h, w = img.shape[:2]
@@ -471,6 +468,10 @@ def _measure_rest(path, rgb, camera, pick_xy, want_cloud, want_debug, sess, tm, 
     t = time.perf_counter()
     pick = None if pick_xy is None else (pick_xy[0] * sx, pick_xy[1] * sy)
     rope = detect_rope(img, None, pick_xy=pick, weak_score=ROPE_WEAK_SCORE)
+    # (the time waited for the segmenter here; it ran beside the band detector)
+    t_seg = time.perf_counter()
+    seg = seg_job.result()
+    tm["segment"] = 1000 * (time.perf_counter() - t_seg)
     if not rope and rope.ambiguous and pick is None:
         # two bands score alike: when exactly one of the leading ones lies across a segmented
         # trunk, that one is the rope (the other is e.g. red paint, tape or clothing)
@@ -551,7 +552,7 @@ def _measure_rest(path, rgb, camera, pick_xy, want_cloud, want_debug, sess, tm, 
     if pick_missed:
         px, py = pick_xy
         raise MonodbhError(f"{path}: no red rope found at the picked point ({px:.0f},{py:.0f})")
-    tm["rope"] = 1000 * (time.perf_counter() - t)
+    tm["rope"] = 1000 * (time.perf_counter() - t) - tm["segment"]
     if weak_refused:
         x, y = _to_photo_pixel(rope.center_xy, (sx, sy), cw, cam)
         raise MonodbhError(f"{path}: no red rope found (a faint red band at ({x:.0f},{y:.0f}) does not "
