@@ -39,16 +39,26 @@ def test_fast_jpeg_path_same_pixels_as_pil(tmp_path):
         ref = np.asarray(im)
     assert fast is not None and fast.shape == ref.shape and fast.flags.c_contiguous
     assert np.array_equal(fast, ref) and np.array_equal(load_photo(p), ref)
-    # rotated, truncated and trailing-data JPEGs are left to PIL
+    # data after the image (a phone's motion-photo video) is fine
+    (tmp_path / "x.jpg").write_bytes(p.read_bytes() + b"\x00\x00ftypmp42" + bytes(300))
+    with Image.open(tmp_path / "x.jpg") as im:
+        assert np.array_equal(photo._fast_jpeg(im, tmp_path / "x.jpg"), ref)
+    # rotated and truncated JPEGs are left to PIL, also when an APP segment (an EXIF
+    # thumbnail) holds an end-of-image marker of its own
     exif = Image.Exif()
     exif[0x0112] = 6
     Image.fromarray(a).save(tmp_path / "r.jpg", quality=90, exif=exif)
-    (tmp_path / "t.jpg").write_bytes(p.read_bytes()[:-200])
-    (tmp_path / "x.jpg").write_bytes(p.read_bytes() + b"trailer")
-    for name in ("r.jpg", "t.jpg", "x.jpg"):
+    raw = p.read_bytes()
+    (tmp_path / "t.jpg").write_bytes(raw[:-200])
+    app = b"\xff\xe1\x00\x0aExif\xff\xd8\xff\xd9"
+    (tmp_path / "u.jpg").write_bytes(raw[:2] + app + raw[2:-200])
+    (tmp_path / "v.jpg").write_bytes(raw[:2] + app + raw[2:])
+    for name in ("r.jpg", "t.jpg", "u.jpg"):
         with Image.open(tmp_path / name) as im:
             assert photo._fast_jpeg(im, tmp_path / name) is None, name
-    assert np.array_equal(load_photo(tmp_path / "x.jpg"), ref)
+    with Image.open(tmp_path / "v.jpg") as im:
+        assert photo._fast_jpeg(im, tmp_path / "v.jpg") is not None
+    assert "truncated" in pytest.raises(PhotoError, load_photo, tmp_path / "u.jpg").value.args[0]
 
 
 @pytest.mark.parametrize("orientation, corner", [(6, (0, -1)), (8, (-1, 0)), (3, (-1, -1))])
