@@ -192,13 +192,16 @@ def _fast_jpeg(im, p: Path) -> np.ndarray | None:
         return None
     if not _jpeg_complete(buf):
         return None
-    flags = cv2.IMREAD_COLOR_RGB | cv2.IMREAD_IGNORE_ORIENTATION
+    rgb_flag = getattr(cv2, "IMREAD_COLOR_RGB", None)       # OpenCV >= 4.10; else BGR, converted
+    flags = (cv2.IMREAD_COLOR if rgb_flag is None else rgb_flag) | cv2.IMREAD_IGNORE_ORIENTATION
     try:
         a = cv2.imdecode(buf, flags)
     except cv2.error:
         return None
-    if a is None or a.shape[:2] != (im.size[1], im.size[0]):
+    if a is None or a.ndim != 3 or a.shape[:2] != (im.size[1], im.size[0]):
         return None
+    if rgb_flag is None:
+        cv2.cvtColor(a, cv2.COLOR_BGR2RGB, dst=a)
     return a
 
 

@@ -39,6 +39,12 @@ def test_fast_jpeg_path_same_pixels_as_pil(tmp_path):
         ref = np.asarray(im)
     assert fast is not None and fast.shape == ref.shape and fast.flags.c_contiguous
     assert np.array_equal(fast, ref) and np.array_equal(load_photo(p), ref)
+    # an OpenCV without IMREAD_COLOR_RGB (< 4.10) decodes BGR and converts: the same pixels
+    import cv2
+    with pytest.MonkeyPatch.context() as mp:
+        mp.delattr(cv2, "IMREAD_COLOR_RGB", raising=False)
+        with Image.open(p) as im:
+            assert np.array_equal(photo._fast_jpeg(im, p), ref)
     # data after the image (a phone's motion-photo video) is fine
     (tmp_path / "x.jpg").write_bytes(p.read_bytes() + b"\x00\x00ftypmp42" + bytes(300))
     with Image.open(tmp_path / "x.jpg") as im:
