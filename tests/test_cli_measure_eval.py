@@ -187,6 +187,17 @@ def test_bench_fresh_process(tmp_path, monkeypatch):
     assert d["repeat"] == 2 and len(d["runs"]) == 3 and d["stages_ms"]["segment"] == pytest.approx(10.0)
     assert 0 < d["import_s"] < d["startup_s"] and d["peak_mib"] > 10 and set(d["pass"]) == {"startup_s", "per_photo_s", "peak_mib"}
     assert "start-up" in r.stdout and "peak memory" in r.stdout
+    # without --calib, a dbh synth photo's camera comes from its .json; other photos are an error
+    meta = json.loads((tmp_path / "000000.json").read_text())
+    (tmp_path / "000000.json").write_text(json.dumps({**meta, "width": W, "height": H}))
+    r = CliRunner().invoke(app, ["bench", str(photo), "--repeat", "1", "--warmup", "0",
+                                 "--measure-fn", f"{MOD}:fake_eval_measure", "--session-factory", "none"])
+    assert r.exit_code == 0, r.output
+    other = tmp_path / "other.jpg"
+    other.write_bytes(photo.read_bytes())
+    r = CliRunner().invoke(app, ["bench", str(other), "--measure-fn", f"{MOD}:fake_eval_measure",
+                                 "--session-factory", "none"])
+    assert r.exit_code == 1 and "no --calib given" in r.output
 
 
 def test_a_measurement_on_another_band_counts_as_a_wrong_tree(tmp_path):
