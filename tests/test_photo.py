@@ -49,17 +49,25 @@ def test_fast_jpeg_path_same_pixels_as_pil(tmp_path):
     (tmp_path / "x.jpg").write_bytes(p.read_bytes() + b"\x00\x00ftypmp42" + bytes(300))
     with Image.open(tmp_path / "x.jpg") as im:
         assert np.array_equal(photo._fast_jpeg(im, tmp_path / "x.jpg"), ref)
-    # rotated and truncated JPEGs are left to PIL, also when an APP segment (an EXIF
-    # thumbnail) holds an end-of-image marker of its own
-    exif = Image.Exif()
-    exif[0x0112] = 6
-    Image.fromarray(a).save(tmp_path / "r.jpg", quality=90, exif=exif)
+    # every EXIF orientation: the pixels of PIL's exif_transpose
+    from PIL import ImageOps
+    for o in range(1, 9):
+        exif = Image.Exif()
+        exif[0x0112] = o
+        q = tmp_path / f"o{o}.jpg"
+        Image.fromarray(a).save(q, quality=90, exif=exif)
+        with Image.open(q) as im:
+            fast = photo._fast_jpeg(im, q)
+            want = np.asarray(ImageOps.exif_transpose(im))
+        assert fast is not None and fast.flags.c_contiguous and np.array_equal(fast, want), o
+    # truncated JPEGs are left to PIL, also when an APP segment (an EXIF thumbnail) holds an
+    # end-of-image marker of its own
     raw = p.read_bytes()
     (tmp_path / "t.jpg").write_bytes(raw[:-200])
     app = b"\xff\xe1\x00\x0aExif\xff\xd8\xff\xd9"
     (tmp_path / "u.jpg").write_bytes(raw[:2] + app + raw[2:-200])
     (tmp_path / "v.jpg").write_bytes(raw[:2] + app + raw[2:])
-    for name in ("r.jpg", "t.jpg", "u.jpg"):
+    for name in ("t.jpg", "u.jpg"):
         with Image.open(tmp_path / name) as im:
             assert photo._fast_jpeg(im, tmp_path / name) is None, name
     with Image.open(tmp_path / "v.jpg") as im:
