@@ -145,6 +145,9 @@ class Perception:
     tree_mask : (H, W) bool roped stem's instance mask.
     ground_mask : (H, W) bool ground pixels.
     depth : (H, W) float32 z-depth (metres, possibly wrongly scaled) or None.
+    depth_job : or a handle whose ``.result()`` gives ``depth`` (the depth network running on
+        another thread): waited for only where the depth is first needed, after the steps that
+        do not need it (stem edges, vanishing point); the wait is ``timings_ms["depth"]``.
     depth_is_metric : whether ``depth`` is trusted as metric (ground truth).
     z1, z2 : (H, W) float32 front/back surface depth of the roped tree (same units as
         ``depth``; 0 outside) or None.
@@ -159,6 +162,7 @@ class Perception:
     ground_mask: np.ndarray
     depth: np.ndarray | None = None
     depth_is_metric: bool = False
+    depth_job: object = None        # handle whose .result() is ``depth`` (computed elsewhere), taken at first need
     z1: np.ndarray | None = None
     z2: np.ndarray | None = None
     source: str = "network"
@@ -447,6 +451,10 @@ def measure_from_perception(perc: Perception, photo: str = "", *, timings: dict 
             up_sources["vanishing"] = vp.up
             res.debug["vanishing"] = vp
     plane = None
+    if perc.depth is None and perc.depth_job is not None:
+        t_w = time.perf_counter()
+        perc.depth = perc.depth_job.result()
+        res.timings_ms["depth"] = res.timings_ms.get("depth", 0.0) + 1000 * (time.perf_counter() - t_w)
     if perc.depth is not None:
         plane, why = _ground_plane(perc, edges, up_sources.get("pose", up_sources.get("vanishing")))
         if plane is not None:

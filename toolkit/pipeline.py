@@ -597,10 +597,7 @@ def _measure_rest(path, rgb, camera, pick_xy, want_cloud, want_debug, sess, tm, 
     edge_mask = tree_mask | band_mask
     ground = seg.semantic == 1
 
-    t = time.perf_counter()
-    depth = depth_job.result()
-    # (the time waited for it here; its own run overlapped the rope search)
-    tm["depth"] = 1000 * (time.perf_counter() - t)
+    # (the depth map is waited for inside the geometry, after the steps that do not need it)
 
     tree_out = {}
 
@@ -623,7 +620,7 @@ def _measure_rest(path, rgb, camera, pick_xy, want_cloud, want_debug, sess, tm, 
 
     perc = Perception(rgb=img, camera=cam, rope_xy=np.asarray(rope.center_xy, float),
                       rope_dir=np.asarray(rope.direction, float), rope_half_px=max(0.5, rope.thickness_px / 2),
-                      tree_mask=tree_mask, ground_mask=ground, depth=depth, depth_is_metric=False,
+                      tree_mask=tree_mask, ground_mask=ground, depth_job=depth_job, depth_is_metric=False,
                       silhouette_fn=silhouette_fn, source="network",
                       base_finder=None if sess.base is None else sess.base.find,
                       edge_search_px=max(3.0, 0.5 * cell), edge_mask=edge_mask,
@@ -656,7 +653,7 @@ def _measure_rest(path, rgb, camera, pick_xy, want_cloud, want_debug, sess, tm, 
         lam_net = cands.get("network", (None,))[0]
         lam = float(np.linalg.norm(res.debug["axis_point"]))
         s = lam / lam_net if lam_net else 1.0
-        res.debug["scene_cloud"] = _scene_cloud(img, depth * s, cam.K, seg.instance, tid)
+        res.debug["scene_cloud"] = _scene_cloud(img, depth_job.result() * s, cam.K, seg.instance, tid)
         if tree_out:
             res.debug["tree_cloud"] = _tree_cloud(img, cam, tree_out, tree_mask, tid)
         tm["cloud"] = 1000 * (time.perf_counter() - t)
@@ -665,11 +662,12 @@ def _measure_rest(path, rgb, camera, pick_xy, want_cloud, want_debug, sess, tm, 
                          tree_mask=tree_mask, rope_thickness_px=rope_T, rope_thickness_native_px=rope_T_native,
                          rope_contrast=rope_contrast, rope_flags=list(rope_flags))
     # the geometry step's own time (it called the tree network and the vanishing point)
-    for k in ("vanishing", "geometry"):
+    for k in ("depth", "vanishing", "geometry"):
         if k in res.timings_ms:
             tm[k] = res.timings_ms[k]
     if "geometry" in tm:
-        tm["geometry"] = max(0.0, tm["geometry"] - tm.get("trees", 0.0) - tm.get("vanishing", 0.0))
+        tm["geometry"] = max(0.0, tm["geometry"] - tm.get("trees", 0.0) - tm.get("vanishing", 0.0)
+                             - tm.get("depth", 0.0))
     res.timings_ms = tm
     res.timings_ms["total"] = sum(v for k, v in tm.items() if k != "total")
     return res
