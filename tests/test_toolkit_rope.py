@@ -309,3 +309,32 @@ def test_rope_profile_fwhm_measures_the_band_thickness():
     # a faint rope (a dull red hardly redder than the bark) stands out much less
     _, faint = rope_profile_fwhm(_band_photo(8.0, red=(110, 70, 58)), line, 8.0)
     assert faint < 0.09
+
+
+def test_maps_computed_in_place_equal_the_plain_steps():
+    """red_shift_map / line_contrast reuse their buffers and _Counts samples the pixel integral
+    at the cell corners (speed): the values must be those of the plain, step-by-step versions."""
+    from monodbh.toolkit.rope import _Counts, line_contrast, red_shift_map, redness_map
+
+    rng = np.random.default_rng(3)
+    rgb = rng.integers(0, 256, (61, 83, 3), dtype=np.uint8)
+    R, G, B = cv2.split(rgb)
+    num = cv2.addWeighted(cv2.subtract(R, cv2.max(G, B), dtype=cv2.CV_32F), 1.0, cv2.subtract(G, B), -0.5, 0.0,
+                          dtype=cv2.CV_32F)
+    den = cv2.add(cv2.addWeighted(R, 1.0, G, 1.0, 30.0, dtype=cv2.CV_32F), B, dtype=cv2.CV_32F)
+    ref = cv2.divide(num, den)
+    assert np.array_equal(red_shift_map(rgb), ref) and np.array_equal(redness_map(rgb), np.maximum(ref, 0.0))
+    F = np.maximum(ref, 0.0)
+    Gb = cv2.GaussianBlur(F, (0, 0), sigmaX=2.0, sigmaY=0.7)
+    want = np.zeros_like(Gb)
+    for d in (2, 3):
+        c = Gb[d:-d]
+        want[d:-d] = np.maximum(want[d:-d], np.minimum(c - Gb[:-2 * d], c - Gb[2 * d:]))
+    assert np.allclose(line_contrast(F), want, atol=1e-7)
+    mask = rng.random((61, 83)) < 0.2
+    for cell in (4, 3):
+        hc, wc = -(-61 // cell), -(-83 // cell)
+        m = np.zeros((hc * cell, wc * cell), np.float32)
+        m[:61, :83] = mask
+        cnt = m.reshape(hc, cell, wc, cell).sum((1, 3))
+        assert np.array_equal(_Counts(mask, cell).I, cv2.integral(cnt, sdepth=cv2.CV_64F))

