@@ -223,3 +223,13 @@ def test_rope_seen_on_part_of_the_stem_keeps_the_mask_edge():
     e, n = _edges_checked_by_rope(gray, perc, e1)
     assert n == 0
     assert abs(e.right_xy[0] - 259.5) < 1.0
+
+
+def test_channel_mean_is_numpys_mean_bit_for_bit():
+    from monodbh.toolkit.measure_core import channel_mean
+
+    rng = np.random.default_rng(5)
+    for shape in [(37, 53, 3), (1, 1, 3), (200, 300, 3)]:
+        rgb = rng.integers(0, 256, shape, dtype=np.uint8)
+        got = channel_mean(rgb)
+        assert got.dtype == np.float32 and np.array_equal(got, rgb.astype(np.float32).mean(2))

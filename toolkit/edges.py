@@ -84,7 +84,8 @@ def trunk_edges(gray: np.ndarray, tree_mask: np.ndarray, center_xy, across_dir, 
     a = np.array([-u[1], u[0]])                 # along the stem
     if a[1] < 0:
         a = -a                                  # pointing down the photo
-    m8 = tree_mask.astype(np.uint8)
+    tm_ = np.asarray(tree_mask)
+    m8 = tm_.view(np.uint8) if tm_.dtype == bool else tm_.astype(np.uint8)      # (no copy of a bool mask)
     # half-width from the mask along the rope line
     s = np.arange(-min(W, 4000) / 2, min(W, 4000) / 2, 1.0)
     xs, ys = c[0] + s * u[0], c[1] + s * u[1]
@@ -115,7 +116,7 @@ def trunk_edges(gray: np.ndarray, tree_mask: np.ndarray, center_xy, across_dir, 
     lefts, rights = [], []
     n_out = 0       # stem borders that fall outside the photo
     S = np.arange(-half * 1.6 - search_px - 3, half * 1.6 + search_px + 3, 0.25)
-    gs = gray.astype(np.float32)
+    gs = np.asarray(gray, np.float32)        # (no copy when it is float32 already)
     for t in offs:
         base = c + t * a
         xs, ys = base[0] + S * u[0], base[1] + S * u[1]

@@ -409,6 +409,32 @@ def stem_edges(perc: Perception, gray: np.ndarray):
     return edges, flags, width_vs_rope
 
 
+def channel_mean(rgb: np.ndarray) -> np.ndarray:
+    """``rgb.astype(float32).mean(2)`` bit for bit, 7x faster: ``((R + G) + B) / 3`` in float32.
+
+    (numpy's mean over a last axis of 3 is a slow strided reduction: 58 -> 8 ms at 1600 px.)
+
+    Parameters
+    ----------
+    rgb : (H, W, 3) uint8.
+
+    Returns
+    -------
+    (H, W) float32.
+
+    Examples
+    --------
+    >>> px = np.array([[[10, 20, 31]]], np.uint8)
+    >>> bool(channel_mean(px)[0, 0] == px.astype(np.float32).mean(2)[0, 0])
+    True
+    """
+    s = rgb[..., 0].astype(np.float32)
+    s += rgb[..., 1]
+    s += rgb[..., 2]
+    s /= 3
+    return s
+
+
 def measure_from_perception(perc: Perception, photo: str = "", *, timings: dict | None = None) -> MeasureResult:
     """Measure the DBH of the roped stem from :class:`Perception`.
 
@@ -420,7 +446,7 @@ def measure_from_perception(perc: Perception, photo: str = "", *, timings: dict 
     t0 = time.perf_counter()
     res = MeasureResult(photo=photo, timings_ms=dict(timings or {}))
     cam = perc.camera
-    gray = perc.rgb.astype(np.float32).mean(2)
+    gray = channel_mean(perc.rgb)
     net = perc.source == "network"      # network perception (vs ground truth): wider error model
     SN = {**SIGMA_MODEL_NETWORK, **(perc.sigma_network or {})}
     edges, flags, width_vs_rope = stem_edges(perc, gray)
