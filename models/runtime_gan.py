@@ -57,8 +57,15 @@ def depth_code_to_metric(t: np.ndarray, fx_net: float, size: int = 256, d_min: f
     ``fx_net``: the photo's focal length at network resolution (px); ``size``: network input side.
     """
     lo = math.log(d_min)
-    d_c = np.exp(lo + (np.asarray(t, np.float32) + 1.0) * 0.5 * (math.log(d_max) - lo))
-    return (d_c * (fx_net / (f_canon_frac * size))).astype(np.float32)
+    # exp(lo + (t + 1) * 0.5 * (ln d_max - lo)) * fx_net / (f_canon_frac * size), step by step in
+    # one buffer (the same float32 operations in the same order as the expression; no temporaries)
+    d = np.asarray(np.add(np.asarray(t, np.float32), 1.0, dtype=np.float32))     # (0-d for a scalar)
+    d *= 0.5
+    d *= math.log(d_max) - lo
+    d += lo
+    np.exp(d, out=d)
+    d *= fx_net / (f_canon_frac * size)
+    return d if d.ndim else d[()]
 
 
 def metric_to_depth_code(d: np.ndarray, fx_net: float, size: int = 256, d_min: float = D_MIN,
@@ -319,9 +326,12 @@ class DepthPredictor(_GanPredictor):
             raise ValueError(f"tree_mask shape {tree_mask.shape} != photo {(H, W)}")
         t = unletterbox(self.predict_code(rgb, tree_mask), W, H)
         if self.flip_tta:
-            tf = unletterbox(self.predict_code(np.ascontiguousarray(rgb[:, ::-1]),
-                                               np.ascontiguousarray(np.asarray(tree_mask)[:, ::-1])), W, H)
-            t = 0.5 * (t + tf[:, ::-1])
+            # (cv2.flip: the same mirror copies as numpy's, 4x faster)
+            m = np.asarray(tree_mask)
+            m_f = cv2.flip(m.view(np.uint8), 1).view(bool) if m.dtype == bool else np.ascontiguousarray(m[:, ::-1])
+            tf = unletterbox(self.predict_code(cv2.flip(np.ascontiguousarray(rgb), 1), m_f), W, H)
+            t += tf[:, ::-1]
+            t *= 0.5
         return depth_code_to_metric(t, self.fx_net(fx_px, W, H), self.size, self.d_min,
                                     self.d_max, self.f_canon_frac)
 
