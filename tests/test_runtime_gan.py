@@ -133,3 +133,17 @@ def test_predictor_missing_file_is_user_error(tmp_path):
         DepthPredictor(tmp_path / "nope.onnx")
     with pytest.raises(MonodbhError, match="no shipped 'treenet'"):
         TreePredictor(manifest={"format": 1, "models": {}})
+
+
+def test_depth_code_to_metric_in_place_equals_the_expression():
+    """Computed step by step in one buffer: bit for bit the plain float32 expression."""
+    import math
+
+    from monodbh.models.runtime_gan import D_MAX, D_MIN, F_CANON_FRAC, depth_code_to_metric
+
+    t = np.random.default_rng(2).uniform(-1, 1, (47, 61)).astype(np.float32)
+    lo = math.log(D_MIN)
+    want = (np.exp(lo + (t + 1.0) * 0.5 * (math.log(D_MAX) - lo)) * (123.4 / (F_CANON_FRAC * 256))).astype(np.float32)
+    got = depth_code_to_metric(t, 123.4, 256)
+    assert got.dtype == np.float32 and np.array_equal(got, want)
+    assert np.array_equal(t, np.random.default_rng(2).uniform(-1, 1, (47, 61)).astype(np.float32))   # input kept
