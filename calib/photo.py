@@ -128,8 +128,8 @@ def _cv2_fallback(p: Path, gray: bool) -> np.ndarray | None:
     return cv2.cvtColor(img, cv2.COLOR_BGR2GRAY if gray else cv2.COLOR_BGR2RGB)
 
 
-def _jpeg_complete(buf: np.ndarray) -> bool:
-    """Does the JPEG in ``buf`` (uint8 bytes) reach its end-of-image marker?
+def _jpeg_complete(data: bytes) -> bool:
+    """Does the JPEG in ``data`` reach its end-of-image marker?
 
     The marker segments before the first scan are walked by their lengths (an EXIF thumbnail,
     itself a JPEG with its own end marker, is skipped that way); after the scan header, ``FF D9``
@@ -139,11 +139,10 @@ def _jpeg_complete(buf: np.ndarray) -> bool:
 
     Examples
     --------
-    >>> b = np.frombuffer(bytes.fromhex("ffd8 ffe0 0004 0000 ffda 0002 1234 ffd9 0000"), np.uint8)
+    >>> b = bytes.fromhex("ffd8 ffe0 0004 0000 ffda 0002 1234 ffd9 0000")
     >>> _jpeg_complete(b), _jpeg_complete(b[:-4])
     (True, False)
     """
-    data = buf.tobytes() if isinstance(buf, np.ndarray) else bytes(buf)
     n = len(data)
     if n < 4 or data[0] != 0xFF or data[1] != 0xD8:
         return False
@@ -188,15 +187,15 @@ def _fast_jpeg(im, p: Path) -> np.ndarray | None:
     import cv2
 
     try:
-        buf = np.fromfile(str(p), dtype=np.uint8)
+        data = p.read_bytes()
     except OSError:
         return None
-    if not _jpeg_complete(buf):
+    if not _jpeg_complete(data):
         return None
     rgb_flag = getattr(cv2, "IMREAD_COLOR_RGB", None)       # OpenCV >= 4.10; else BGR, converted
     flags = (cv2.IMREAD_COLOR if rgb_flag is None else rgb_flag) | cv2.IMREAD_IGNORE_ORIENTATION
     try:
-        a = cv2.imdecode(buf, flags)
+        a = cv2.imdecode(np.frombuffer(data, np.uint8), flags)      # (no copy of the file's bytes)
     except cv2.error:
         return None
     if a is None or a.ndim != 3 or a.shape[:2] != (im.size[1], im.size[0]):

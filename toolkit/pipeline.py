@@ -109,14 +109,14 @@ class Session:
         if self._pool is None:
             from concurrent.futures import ThreadPoolExecutor
             self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="monodbh-depth")
-        return _Job(self._pool.submit(fn, *args), fn, args)
+        return _Job(self._pool.submit(fn, *args))
 
 
 class _Job:
-    """A background call's handle: a future, or a call deferred to :meth:`result` when the
-    overlap is off."""
+    """A background call's handle: a future, or (``fut`` None) a call deferred to :meth:`result`
+    when the overlap is off."""
 
-    def __init__(self, fut, fn, args):
+    def __init__(self, fut, fn=None, args=()):
         self._fut, self._fn, self._args = fut, fn, args
         self._done, self._value = False, None
 
@@ -432,8 +432,6 @@ def _measure_gt(path, rgb, camera, gt, tm):
 
 def _measure(path, rgb, camera, pick_xy, want_cloud, want_debug, sess: Session, tm, base_xy=None,
              rope_diameter_m=None):
-    import cv2
-
     t = time.perf_counter()
     img, cam, (sx, sy), cw = _work_image(rgb, camera)
     h, w = img.shape[:2]
