@@ -150,7 +150,7 @@ def knot_band(ys: np.ndarray, xs: np.ndarray, max_tilt_deg: float = KNOT_MAX_TIL
     t = np.deg2rad(max_tilt_deg)
     lines = cv2.HoughLines(m * 255, 1, np.pi / 180, max(4, int(0.3 * max(m.shape))),
                            min_theta=np.pi / 2 - t, max_theta=np.pi / 2 + t)
-    if lines is None:
+    if lines is None or len(lines) == 0:       # OpenCV 5 returns an empty array, 4.x None
         return None
     rho, theta = (float(v) for v in lines[0, 0])
     X, Y = xs - x0, ys - y0

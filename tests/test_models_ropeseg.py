@@ -151,3 +151,15 @@ def test_shipped_rope_finder_finds_a_rope_and_nothing_without_one():
     assert not rope_from_finder(finder.components(img0), img0.shape[:2])
     with pytest.raises(ValueError):
         finder.logit_map(img.astype(np.float32))
+
+
+def test_knot_band_without_a_near_horizontal_line():
+    """A piece with no near-horizontal line (a vertical paint mark) has no band; with OpenCV 5,
+    ``cv2.HoughLines`` returns an empty array there instead of None (was an IndexError)."""
+    from monodbh.models.runtime_ropeseg import knot_band
+
+    ys, xs = np.arange(40), np.full(40, 7)
+    assert knot_band(ys, xs) is None
+    ys = np.r_[np.full(30, 10), np.arange(11, 25)]
+    xs = np.r_[np.arange(30), np.full(14, 20)]
+    assert knot_band(ys, xs)[:30].all()

@@ -464,7 +464,8 @@ def _measure_rest(path, rgb, camera, pick_xy, want_cloud, want_debug, sess, tm, 
     out_shape = sess.segmenter.spec["outputs"][1]["shape"]
     cell = max(w / out_shape[-1], h / out_shape[-2])
     t = time.perf_counter()
-    pick = None if pick_xy is None else (pick_xy[0] * sx, pick_xy[1] * sy)
+    # a tap is a photo pixel: into the working image through the lens distortion, as --base
+    pick = None if pick_xy is None else tuple(float(v) for v in _to_work_pixel(pick_xy, (sx, sy), cw, cam))
     rope = detect_rope(img, None, pick_xy=pick, weak_score=ROPE_WEAK_SCORE)
     # (the time waited for the segmenter here; it ran beside the band detector)
     t_seg = time.perf_counter()
