@@ -158,20 +158,3 @@ def test_shipped_base_finder_on_the_bundled_example():
     assert (est.xy is None) == (est.p_base < finder.threshold)
     if est:
         assert est.xy[1] > H / 2 and abs(est.xy[0] - W / 2) < 1e-6   # on the strip's mid-line, below
-
-
-def test_stem_image_direction_blends_the_vertical():
-    from types import SimpleNamespace
-
-    from monodbh.toolkit.measure_core import STEM_DIRECTION_EDGE_WEIGHT, _stem_image_direction
-
-    cam = SimpleNamespace(K=np.array([[500.0, 0, 320], [0, 500.0, 240], [0, 0, 1]]))
-    tilted = np.array([np.sin(np.radians(10)), np.cos(np.radians(10))])
-    # a level camera: the vertical through any pixel is the image column
-    d = _stem_image_direction(cam, (100.0, 300.0), tilted, {"vanishing": np.array([0.0, -1.0, 0.0])})
-    ang = np.degrees(np.arctan2(d[0], d[1]))
-    assert ang == pytest.approx(np.degrees(np.arctan2(STEM_DIRECTION_EDGE_WEIGHT * tilted[0],
-                                                      STEM_DIRECTION_EDGE_WEIGHT * tilted[1]
-                                                      + 1 - STEM_DIRECTION_EDGE_WEIGHT)), abs=1e-6)
-    # no pose and no vanishing point: the edges' own direction
-    assert np.allclose(_stem_image_direction(cam, (100.0, 300.0), tilted, {"ground_plane": np.zeros(3)}), tilted)

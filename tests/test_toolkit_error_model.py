@@ -69,3 +69,20 @@ def test_distance_calibration_fit_recovers_a_shrinkage():
     assert fit["median_abs_ln_after"] < 0.05 < fit["median_abs_ln_before"]
     assert 0 < fit["sigma"] < 0.05
     assert distance_calibration_fit(rows[:10]) is None
+
+
+def test_error_model_summary_statistics():
+    from monodbh.toolkit.error_model import summarize
+    rows = [dict(photo=str(i), true_dbh_cm=20.0, dbh_cm=20.0 * np.exp(e), dbh_sigma_cm=2.0,
+                 scale_log_err=e, cand_log_err={"network": e, "ground_plane": -e},
+                 cand_sigma={"network": 0.3, "ground_plane": 0.4}, est_angular_log_err={"tangent": 0.0})
+            for i, e in enumerate([0.05, -0.1, 0.2, 0.0])]
+    rows.append(dict(photo="x", true_dbh_cm=30.0, error="no red rope found"))
+    s = summarize(rows)
+    assert s["n_roped"] == 5 and s["n_measured"] == 4
+    assert s["sources"]["network"]["median_abs"] == pytest.approx(0.075)
+    assert s["sources"]["ground_plane"]["bias"] == pytest.approx(-0.025)
+    assert s["sources"]["network"]["sigma"] == pytest.approx(0.075 / 0.674)
+    errs = np.abs(20.0 * np.exp([0.05, -0.1, 0.2, 0.0]) - 20.0)
+    assert s["dbh_mae_cm"] == pytest.approx(errs.mean())
+    assert s["coverage_1sigma"] == pytest.approx(np.mean(errs <= 2.0))

@@ -237,7 +237,7 @@ def distance_calibration_fit(rows: list[dict], min_n: int = 20) -> dict | None:
     """
     from scipy.stats import theilslopes
 
-    from monodbh.toolkit.measure_core import NETWORK_SCALE_SOURCES
+    from monodbh.toolkit.geometry import NETWORK_SCALE_SOURCES
 
     ok = [r for r in rows if r.get("dbh_cm") is not None and r.get("scale_leader") in NETWORK_SCALE_SOURCES
           and "lam_combined_log_err" in r]

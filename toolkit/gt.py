@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .measure_core import Perception
+from .geometry import Perception
 
 __all__ = ["perception_from_ground_truth", "true_base_pixel", "simulated_tap", "simulated_rope_tap", "true_rope_diameter_m"]
 

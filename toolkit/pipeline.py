@@ -12,7 +12,7 @@ import cv2
 import numpy as np
 
 from ..calib.errors import MonodbhError
-from .measure_core import Perception, measure_from_perception
+from .geometry import Perception, measure_from_perception
 from .result import MeasureResult, PointCloud
 
 __all__ = ["Session", "fresh_error_model", "measure_photo", "reconstruct_photo", "WORK_LONG_SIDE_PX", "DEPTH_FLIP_TTA", "unproject_depth",

@@ -1,7 +1,9 @@
-"""Metric geometry of one stem: rays, planes, single-view metrology, tangent-ray and circle DBH.
+"""Low-level metric geometry of one stem: rays, planes, single-view metrology, tangent-ray and circle fits.
 
-All functions work in the camera frame (OpenCV: x right, y down, z forward), metres.
-Fitting functions return falsy result objects instead of raising (scikit-image style).
+Imported by the stages of :mod:`monodbh.toolkit.geometry` (and by anything that needs these
+primitives); imports numpy (scipy and scikit-image inside :func:`fit_circle`). All functions work
+in the camera frame (OpenCV: x right, y down, z forward), metres. Fitting functions return falsy
+result objects instead of raising (scikit-image style).
 """
 from __future__ import annotations
 
@@ -10,7 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 
 __all__ = [
-    "normalize", "rays_from_normalized", "PlaneFit", "fit_plane_ransac", "metrology_distance",
+    "normalize", "rays_from_normalized", "pixel_rays", "PlaneFit", "fit_plane_ransac", "metrology_distance",
     "tangent_diameter", "CircleFit", "fit_circle", "project_perpendicular",
 ]
 
@@ -25,6 +27,13 @@ def rays_from_normalized(xy: np.ndarray) -> np.ndarray:
     """Unit rays ``(N, 3)`` through undistorted normalized image coordinates ``(N, 2)``."""
     xy = np.asarray(xy, np.float64).reshape(-1, 2)
     return normalize(np.concatenate([xy, np.ones((len(xy), 1))], 1))
+
+
+def pixel_rays(camera, xy) -> np.ndarray:
+    """Unit rays ``(N, 3)`` through image pixels ``xy`` ``(N, 2)`` (or ``(2,)``) of ``camera``
+    (a :class:`monodbh.calib.Camera`: its lens distortion is undone first)."""
+    nxy = camera.undistort_points(np.asarray(xy, np.float64).reshape(-1, 2), normalized=True)
+    return rays_from_normalized(nxy)
 
 
 def project_perpendicular(v: np.ndarray, axis: np.ndarray) -> np.ndarray:

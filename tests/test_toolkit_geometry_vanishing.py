@@ -1,9 +1,9 @@
-"""Vertical vanishing direction from near-vertical lines (toolkit.vanishing)."""
+"""Vertical vanishing direction from near-vertical lines (toolkit.geometry.vanishing)."""
 import cv2
 import numpy as np
 
 from monodbh.calib.camera import CameraPose
-from monodbh.toolkit.vanishing import vertical_direction
+from monodbh.toolkit.geometry import VanishingConfig, vertical_direction
 
 
 def _rot(pitch_deg, roll_deg):
@@ -75,3 +75,12 @@ def test_no_lines_is_falsy_with_reason():
     for y in range(40, 440, 60):
         img[y:y + 20] = 220
     assert not vertical_direction(img, K)
+
+
+def test_the_fewest_stems_come_from_the_config():
+    K = np.array([[600.0, 0, 399.5], [0, 600.0, 299.5], [0, 0, 1]])
+    img = _trunks_photo(_rot(5, 2), K)
+    est = vertical_direction(img, K)
+    assert est and est.n_groups < 40
+    est = vertical_direction(img, K, config=VanishingConfig(min_groups=40))
+    assert not est and "too few" in est.reason

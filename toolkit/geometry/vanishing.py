@@ -1,10 +1,11 @@
 """The "up" direction from the vertical vanishing point of trunk edges (classical vision).
 
-Tree stems stand close to vertical (a few degrees of lean, in random directions), so the long,
-near-vertical straight edges of a forest photo (trunk silhouettes, bark furrows) meet near the
-vertical vanishing point. Its direction in the camera frame is the world's "up", without a
-calibrated pose and without the depth network. Imported by :mod:`.measure_core` and
-:mod:`.pipeline` only.
+Imported by :mod:`.up` (the up direction without a calibrated pose); imports numpy and cv2
+(``cv2.ximgproc``). Tree stems stand close to vertical (a few degrees of lean, in random
+directions), so the long, near-vertical straight edges of a forest photo (trunk silhouettes, bark
+furrows) meet near the vertical vanishing point. Its direction in the camera frame is the world's
+"up", without a calibrated pose and without the depth network. Parameters:
+:class:`~.config.VanishingConfig` (decision record ``docs/decisions/stem-direction.md``).
 
 Method (:func:`vertical_direction`):
 
@@ -26,8 +27,9 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-__all__ = ["VerticalEstimate", "vertical_direction", "line_segments"]
+from .config import VanishingConfig
 
+__all__ = ["VerticalEstimate", "vertical_direction", "line_segments"]
 
 @dataclass
 class VerticalEstimate:
@@ -64,11 +66,14 @@ class VerticalEstimate:
         return (float(pitch), float(roll))
 
 
-def line_segments(gray: np.ndarray, min_len_px: float) -> np.ndarray:
-    """Straight segments ``(N, 4)`` (x1, y1, x2, y2) of a uint8 / float grey image ``(H, W)``."""
+def line_segments(gray: np.ndarray, min_len_px: float, config: VanishingConfig | None = None) -> np.ndarray:
+    """Straight segments ``(N, 4)`` (x1, y1, x2, y2) of a uint8 / float grey image ``(H, W)``
+    at least ``min_len_px`` long (and 10 px), with the line detector's parameters of ``config``."""
+    cfg = config or VanishingConfig()
     g = gray if gray.dtype == np.uint8 else np.clip(gray, 0, 255).astype(np.uint8)
     fld = cv2.ximgproc.createFastLineDetector(length_threshold=int(max(10, min_len_px)),
-                                              distance_threshold=1.414, canny_th1=30, canny_th2=60,
+                                              distance_threshold=cfg.line_distance_px,
+                                              canny_th1=cfg.canny_thresholds[0], canny_th2=cfg.canny_thresholds[1],
                                               canny_aperture_size=3, do_merge=True)
     seg = fld.detect(g)
     if seg is None:
@@ -77,16 +82,71 @@ def line_segments(gray: np.ndarray, min_len_px: float) -> np.ndarray:
 
 
 def _normals(seg: np.ndarray, Kinv: np.ndarray) -> np.ndarray:
+    """(N, 3) unit normals of the segments' (N, 4) interpretation planes."""
     p1 = np.c_[seg[:, :2], np.ones(len(seg))] @ Kinv.T
     p2 = np.c_[seg[:, 2:], np.ones(len(seg))] @ Kinv.T
     n = np.cross(p1, p2)
     return n / np.linalg.norm(n, axis=1, keepdims=True)
 
 
+def _near_vertical(gray: np.ndarray, mask: np.ndarray | None, cfg: VanishingConfig) -> tuple[np.ndarray, np.ndarray]:
+    """The photo's long near-vertical segments ``(N, 4)`` and their lengths ``(N,)`` (midpoint
+    in ``mask`` (H, W) bool when given)."""
+    H, W = gray.shape
+    seg = line_segments(gray, cfg.min_len_frac * H, cfg)
+    L = None
+    if len(seg):
+        d = seg[:, 2:] - seg[:, :2]
+        L = np.hypot(d[:, 0], d[:, 1])
+        tilt = np.degrees(np.arctan2(np.abs(d[:, 0]), np.abs(d[:, 1])))
+        keep = (L >= cfg.min_len_frac * H) & (tilt <= cfg.max_tilt_deg)
+        if mask is not None:
+            mx = np.clip(((seg[:, 0] + seg[:, 2]) / 2).round().astype(int), 0, W - 1)
+            my = np.clip(((seg[:, 1] + seg[:, 3]) / 2).round().astype(int), 0, H - 1)
+            keep &= mask[my, mx]
+        seg, L = seg[keep], L[keep]
+    return seg, L
+
+
+def _ransac_direction(N: np.ndarray, w: np.ndarray, cfg: VanishingConfig) -> np.ndarray | None:
+    """The best-supported direction ``(3,)`` perpendicular to pairs of the (N, 3) plane normals
+    (pairs drawn by the (N,) length weights ``w``), pointing up; None when no hypothesis is within
+    ``cfg.max_from_level_deg`` of the level camera's up."""
+    n_seg = len(N)
+    thr = np.sin(np.radians(cfg.inlier_deg))
+    rng = np.random.default_rng(cfg.seed)
+    p = w / w.sum()
+    level = np.array([0.0, -1.0, 0.0])
+    # all RANSAC hypotheses at once: pairs drawn by length, u = n_i x n_j
+    i = rng.choice(n_seg, cfg.iters, p=p)
+    j = rng.choice(n_seg, cfg.iters, p=p)
+    U = np.cross(N[i], N[j])
+    nu = np.linalg.norm(U, axis=1)
+    good = (i != j) & (nu > 1e-9)
+    U = U[good] / nu[good, None]
+    U *= np.where(U @ level < 0, -1.0, 1.0)[:, None]
+    U = U[U @ level >= np.cos(np.radians(cfg.max_from_level_deg))]     # pitch / roll beyond any handheld photo
+    if not len(U):
+        return None
+    support = (np.abs(N @ U.T) < thr).T.astype(np.float64) @ w      # (hypotheses,)
+    return U[int(np.argmax(support))]
+
+
+def _refine_direction(N: np.ndarray, w: np.ndarray, u: np.ndarray, cfg: VanishingConfig) -> np.ndarray:
+    """Cauchy-weighted least squares of the direction ``u`` (3,) against the (N, 3) normals."""
+    level = np.array([0.0, -1.0, 0.0])
+    thr_r = np.sin(np.radians(cfg.refine_deg))
+    for _ in range(cfg.refine_steps):
+        r = N @ u
+        cw = w / (1 + (r / thr_r) ** 2)
+        _, _, Vt = np.linalg.svd(N * np.sqrt(cw)[:, None], full_matrices=False)
+        u2 = Vt[-1]
+        u = u2 if u2 @ level > 0 else -u2
+    return u
+
+
 def vertical_direction(gray: np.ndarray, K: np.ndarray, *, mask: np.ndarray | None = None,
-                       min_len_frac: float = 0.06, max_tilt_deg: float = 30.0,
-                       inlier_deg: float = 1.5, refine_deg: float = 4.0, iters: int = 400,
-                       seed: int = 0, min_groups: int = 3) -> VerticalEstimate:
+                       config: VanishingConfig | None = None) -> VerticalEstimate:
     """Estimate the world's up direction in the camera frame from near-vertical image lines.
 
     Parameters
@@ -94,13 +154,8 @@ def vertical_direction(gray: np.ndarray, K: np.ndarray, *, mask: np.ndarray | No
     gray : (H, W) grey image of an undistorted (pinhole) photo.
     K : (3, 3) its intrinsics.
     mask : (H, W) bool, optional: only segments whose midpoint lies in it (e.g. tree pixels).
-    min_len_frac : shortest segment, as a fraction of the image height.
-    max_tilt_deg : largest angle from the image's vertical axis (roll and pitch tilt lines).
-    inlier_deg : angle between a segment's interpretation plane and ``u`` counted as agreeing
-        in the RANSAC search.
-    refine_deg : scale of the Cauchy weights of the refinement: larger averages more stems
-        (each leans a few degrees its own way), smaller follows the dominant ones.
-    min_groups : fewest distinct stems (segment columns) accepted.
+    config : :class:`~.config.VanishingConfig` (default when None): segment length and tilt,
+        RANSAC and refinement angles, fewest stems.
 
     Returns
     -------
@@ -117,64 +172,33 @@ def vertical_direction(gray: np.ndarray, K: np.ndarray, *, mask: np.ndarray | No
     >>> bool(est), round(float(est.up[1]), 3), round(float(abs(est.up[0])), 3)
     (True, -1.0, 0.0)
     """
+    cfg = config or VanishingConfig()
     if gray.ndim != 2:
         raise ValueError(f"gray must be (H, W), got {gray.shape}")
     H, W = gray.shape
-    seg = line_segments(gray, min_len_frac * H)
-    if len(seg):
-        d = seg[:, 2:] - seg[:, :2]
-        L = np.hypot(d[:, 0], d[:, 1])
-        tilt = np.degrees(np.arctan2(np.abs(d[:, 0]), np.abs(d[:, 1])))
-        keep = (L >= min_len_frac * H) & (tilt <= max_tilt_deg)
-        if mask is not None:
-            mx = np.clip(((seg[:, 0] + seg[:, 2]) / 2).round().astype(int), 0, W - 1)
-            my = np.clip(((seg[:, 1] + seg[:, 3]) / 2).round().astype(int), 0, H - 1)
-            keep &= mask[my, mx]
-        seg, L = seg[keep], L[keep]
+    seg, L = _near_vertical(gray, mask, cfg)
     n_seg = len(seg)
-    if n_seg < 2 * min_groups:
+    if n_seg < 2 * cfg.min_groups:
         return VerticalEstimate(n_segments=n_seg, reason=f"too few near-vertical lines ({n_seg})")
-    Kinv = np.linalg.inv(K)
-    N = _normals(seg, Kinv)
+    N = _normals(seg, np.linalg.inv(K))
     w = L / L.sum()
-    thr = np.sin(np.radians(inlier_deg))
-    rng = np.random.default_rng(seed)
-    p = w / w.sum()
-    level = np.array([0.0, -1.0, 0.0])
-    # all RANSAC hypotheses at once: pairs drawn by length, u = n_i x n_j
-    i = rng.choice(n_seg, iters, p=p)
-    j = rng.choice(n_seg, iters, p=p)
-    U = np.cross(N[i], N[j])
-    nu = np.linalg.norm(U, axis=1)
-    good = (i != j) & (nu > 1e-9)
-    U = U[good] / nu[good, None]
-    U *= np.where(U @ level < 0, -1.0, 1.0)[:, None]
-    U = U[U @ level >= np.cos(np.radians(40))]          # pitch / roll beyond any handheld photo
-    if not len(U):
+    u = _ransac_direction(N, w, cfg)
+    if u is None:
         return VerticalEstimate(n_segments=n_seg, reason="no consistent vanishing direction")
-    support = (np.abs(N @ U.T) < thr).T.astype(np.float64) @ w      # (hypotheses,)
-    u = U[int(np.argmax(support))]
-    thr_r = np.sin(np.radians(refine_deg))
-    for _ in range(8):                                   # Cauchy-weighted least squares
-        r = N @ u
-        cw = w / (1 + (r / thr_r) ** 2)
-        _, _, Vt = np.linalg.svd(N * np.sqrt(cw)[:, None], full_matrices=False)
-        u2 = Vt[-1]
-        u = u2 if u2 @ level > 0 else -u2
+    u = _refine_direction(N, w, u, cfg)
     r = N @ u
-    inl = np.abs(r) < thr_r
-    # distinct stems: inlier segment midpoints grouped in columns of 2 % of the image width
+    inl = np.abs(r) < np.sin(np.radians(cfg.refine_deg))
+    # distinct stems: inlier segment midpoints grouped in columns of the image width
     mid_x = (seg[inl, 0] + seg[inl, 2]) / 2
-    groups = np.unique(np.floor(mid_x / (0.02 * W))).size
-    if groups < min_groups:
+    groups = np.unique(np.floor(mid_x / (cfg.column_frac * W))).size
+    if groups < cfg.min_groups:
         return VerticalEstimate(n_segments=n_seg, n_inliers=int(inl.sum()), n_groups=int(groups),
                                 reason=f"near-vertical lines on too few stems ({groups})")
     # scatter of the agreeing lines (plane-to-direction angle), length-weighted
     ang = np.degrees(np.arcsin(np.clip(np.abs(r[inl]), 0, 1)))
     scatter = float(np.sqrt(np.average(ang ** 2, weights=w[inl])))
-    # stems lean a few degrees each, shared by all their edges: measured on 40 synthetic
-    # scenes (seed 1001), |error| median 1.4 deg, 90th percentile 3.8 deg, larger with fewer
-    # line columns; sigma = 11 deg / sqrt(columns), at least the lines' own scatter
-    sigma = float(max(11.0 / np.sqrt(groups), scatter))
+    # stems lean a few degrees each, shared by all their edges: the sigma falls with the number
+    # of line columns, at least the lines' own scatter
+    sigma = float(max(cfg.sigma_columns_deg / np.sqrt(groups), scatter))
     return VerticalEstimate(up=u, sigma_deg=sigma, n_segments=n_seg, n_inliers=int(inl.sum()),
                             n_groups=int(groups), segments=seg[inl].astype(np.float32))

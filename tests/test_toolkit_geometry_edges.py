@@ -1,0 +1,58 @@
+"""Trunk silhouette edges at the rope (toolkit.geometry.edges): trunk_edges, rope_row_contrast, channel_mean."""
+import numpy as np
+import pytest
+
+from monodbh.toolkit.geometry import trunk_edges
+from geometry_scenes import roped_pair
+
+
+def _stem_image(x0, x1, W=640, H=480, bg=60.0, bark=170.0):
+    """A vertical stem between x0 and x1 (sub-pixel, anti-aliased; pixel centres at integer
+    coordinates, as in OpenCV), (H, W) float32."""
+    xs = np.arange(W, dtype=np.float64)
+    cover = np.clip(np.minimum(xs - x0, x1 - xs) + 0.5, 0, 1)
+    row = bg + (bark - bg) * cover
+    return np.tile(row.astype(np.float32), (H, 1))
+
+
+def test_wide_stem_at_the_photo_border_is_found():
+    # a close stem 300 px wide whose sampling lines leave the photo on the left, beyond the stem
+    x0, x1 = 20.3, 320.7
+    gray = _stem_image(x0, x1)
+    mask = np.zeros(gray.shape, bool)
+    mask[:, 24:318] = True            # a coarse mask, a few pixels inside the true borders
+    e = trunk_edges(gray, mask, (170.0, 240.0), (1.0, 0.0), rope_half_px=3.0, search_px=6.0)
+    assert e, e.reason
+    assert abs(e.left_xy[0] - x0) < 0.3 and abs(e.right_xy[0] - x1) < 0.3
+
+
+def test_stem_leaving_the_photo_says_so():
+    gray = _stem_image(-50.0, 250.0)
+    mask = np.zeros(gray.shape, bool)
+    mask[:, 0:248] = True
+    e = trunk_edges(gray, mask, (100.0, 240.0), (1.0, 0.0), rope_half_px=3.0, search_px=6.0)
+    assert not e
+    assert "runs out of the photo" in e.reason
+
+
+def test_rope_row_contrast_is_high_on_the_rope_only():
+    from monodbh.toolkit.geometry import rope_row_contrast
+    from monodbh.toolkit.rope import redness_map
+    rgb, _ = roped_pair(rope_to=260)
+    F = redness_map(rgb)
+    s = np.arange(-100.0, 100.0, 1.0)          # from x 130 to 330 across the rope at (230, 200)
+    c = rope_row_contrast(F, (230.0, 200.0), (1.0, 0.0), (1.0, 0.0), (0.0, 1.0), s, rope_half_px=2.5)
+    on_rope = (s > -25) & (s < 25)
+    on_neighbour = (s > 35) & (s < 95)
+    assert c[on_rope].min() > 0.2
+    assert np.abs(c[on_neighbour]).max() < 0.02
+
+
+def test_channel_mean_is_numpys_mean_bit_for_bit():
+    from monodbh.toolkit.geometry import channel_mean
+
+    rng = np.random.default_rng(5)
+    for shape in [(37, 53, 3), (1, 1, 3), (200, 300, 3)]:
+        rgb = rng.integers(0, 256, shape, dtype=np.uint8)
+        got = channel_mean(rgb)
+        assert got.dtype == np.float32 and np.array_equal(got, rgb.astype(np.float32).mean(2))

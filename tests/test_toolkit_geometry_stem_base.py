@@ -1,0 +1,105 @@
+"""The stem base: its states and the visible-stem bound (toolkit.geometry.stem_base)."""
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from geometry_scenes import level_scene
+
+
+def test_stem_hidden_by_a_bush_caps_a_too_far_network_scale():
+    """The base is at or below where a bush hides the stem: a network distance beyond the
+    metrology through that point is capped to it (5 m true; 8.5 m network; bound 5 x 1.3 / 0.9)."""
+    from monodbh.toolkit.geometry import Perception, measure_from_perception
+    for bush in (True, False):
+        rgb, tree, ground, depth, cam = level_scene(bush)
+        p = Perception(rgb=rgb, camera=cam, rope_xy=np.array([240.0, 320.0]), rope_dir=np.array([1.0, 0.0]),
+                       rope_half_px=2.0, tree_mask=tree, ground_mask=ground, depth=depth,
+                       source="network", use_vanishing=False,
+                       sigma_network={"network": 0.37, "stem_base": 0.05})
+        r = measure_from_perception(p)
+        assert r.error is None, r.error
+        if bush:
+            assert "scale_capped_by_visible_stem" in r.flags
+            assert r.scale_source.startswith("visible_stem+network")
+            assert 6.9 < r.distance_m < 7.6                       # not 8.8: capped near 7.3
+        else:                                                     # the base itself is seen
+            assert r.scale_source.startswith("stem_base"), r.scale_source
+            assert r.distance_m == pytest.approx(5.15, rel=0.03)    # to the axis: 5 m + radius
+            assert "scale_capped_by_visible_stem" not in r.flags
+    # a distance calibration (error model) applies to network-led scales only, before the cap
+    rgb, tree, ground, depth, cam = level_scene(False)
+    kw = dict(rgb=rgb, camera=cam, rope_xy=np.array([240.0, 320.0]), rope_dir=np.array([1.0, 0.0]),
+              rope_half_px=2.0, tree_mask=tree, ground_mask=np.zeros_like(ground), depth=depth,
+              source="network", use_vanishing=False)
+    r0 = measure_from_perception(Perception(**kw))
+    r1 = measure_from_perception(Perception(**kw, distance_calibration={"a": 0.0, "b": 0.7}))
+    assert "distance_calibrated" in r1.flags and r1.scale_source == "network"
+    lam0 = r0.debug["lam_combined"]                     # 8.8 m: capped to 5.2 without calibration
+    assert r1.debug["lam_uncalibrated"] == pytest.approx(lam0)
+    lam1 = np.exp(0.7 * np.log(lam0))                   # 4.6 m: below the bound, not capped
+    assert np.linalg.norm(r1.debug["axis_point"]) == pytest.approx(lam1, rel=1e-6)
+    assert r1.dbh_cm / r0.dbh_cm == pytest.approx(lam1 / np.linalg.norm(r0.debug["axis_point"]), rel=2e-3)
+    # the calibrated distances' own measured spread replaces the raw network's sigma
+    r2 = measure_from_perception(Perception(**kw, distance_calibration={"a": 0.0, "b": 0.7, "sigma": 0.2}))
+    assert r2.dbh_cm == pytest.approx(r1.dbh_cm)
+    assert r2.dbh_sigma_cm / r2.dbh_cm < r1.dbh_sigma_cm / r1.dbh_cm
+    assert r2.dbh_sigma_cm / r2.dbh_cm == pytest.approx(0.2, abs=0.05)
+
+
+def _level_stem():
+    """The level scene's camera and the stem's edges and axis at the rope (row 320, 5 m away)."""
+    from monodbh.toolkit.geometry import TrunkEdges
+    from monodbh.toolkit.geometry.up import stem_axis
+    rgb, tree, ground, depth, cam = level_scene(False)
+    half = 0.5 * 500.0 * 0.3 / 5.0
+    edges = TrunkEdges(left_xy=np.array([240.0 - half, 320.0]), right_xy=np.array([240.0 + half, 320.0]),
+                       width_px=2 * half, along=np.array([0.0, 1.0]), across=np.array([1.0, 0.0]))
+    return rgb, tree, ground, cam, edges, stem_axis(cam, edges, np.array([0.0, -1.0, 0.0]))
+
+
+def test_base_metrology_gives_the_axis_distance_at_the_rope():
+    from monodbh.toolkit.geometry.stem_base import StemBase, base_metrology, visible_stem_bound
+    *_, cam, edges, axis = _level_stem()
+    lt, lb = base_metrology(cam, axis, (240.0, 450.0))          # the front contact, 1.5 m below the camera
+    assert lt == pytest.approx(np.hypot(5.15, 0.2), rel=0.02) and lb > lt
+    # the lowest tracked point where a bush hides the stem (0.4 m up) bounds the distance from above
+    bound = visible_stem_bound(cam, axis, StemBase(None, "occluded", {"end_xy": np.array([240.0, 410.0])}))
+    assert bound[1] == "occluded" and bound[0] > lt
+    assert visible_stem_bound(cam, axis, StemBase(np.array([240.0, 450.0]), "ground", {"end_xy": (240.0, 450.0)})) is None
+    assert visible_stem_bound(cam, axis, StemBase(None, "unconfirmed")) is None
+
+
+def test_stem_base_states():
+    from monodbh.toolkit.geometry import Perception, StemBaseConfig
+    from monodbh.toolkit.geometry.stem_base import find_stem_base
+    from monodbh.toolkit.result import MeasureResult
+    rgb, tree, ground, cam, edges, axis = _level_stem()
+    gray = rgb.astype(np.float32).mean(2)
+    calls = []
+
+    def finder(rgb_, top_xy, along, width_px):
+        calls.append(width_px)
+        return SimpleNamespace(xy=(240.0, 449.0), p_base=0.4)
+
+    def perc(**kw):
+        return Perception(rgb=rgb, camera=cam, rope_xy=np.array([240.0, 320.0]), rope_dir=np.array([1.0, 0.0]),
+                          rope_half_px=2.0, tree_mask=tree, ground_mask=ground, **kw)
+
+    def find(p, flags, config=None):
+        return find_stem_base(p, gray, edges, axis, {}, MeasureResult(photo=""), flags, config)
+
+    flags = []
+    b = find(perc(base_xy=np.array([241.0, 450.0]), base_finder=finder), flags)
+    assert b.status == "user" and flags == ["stem_base_from_user"] and not calls
+    flags = []
+    b = find(perc(base_finder=finder), flags)                     # p 0.4 < 0.5: a weak network base
+    assert b.status == "network_weak" and np.allclose(b.xy, [240.0, 449.0]) and flags == ["stem_base_from_network"]
+    assert find(perc(base_finder=finder), [], StemBaseConfig(p_strong=0.3)).status == "network"
+    # no segmented stem to confirm a base: nobody looks for one
+    n = len(calls)
+    assert find(perc(base_finder=finder, extra={"tree_mask_from_rope": True}), []).status == "unconfirmed"
+    assert find(perc(), ["width_disagrees_rope"]).status == "unconfirmed" and len(calls) == n
+    # no network: the edge tracker finds the base on the ground
+    b = find(perc(), [])
+    assert b.status == "ground" and b.track_info is not None and abs(b.xy[1] - 449.5) < 2.0

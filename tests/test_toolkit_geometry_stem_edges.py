@@ -1,0 +1,51 @@
+"""The edge pair checked against the rope band (toolkit.geometry.stem_edges)."""
+import numpy as np
+import pytest
+
+from geometry_scenes import rope_perception, roped_pair
+from monodbh.toolkit.geometry.stem_edges import edges_checked_by_rope, edges_two_pass
+
+
+def test_merged_neighbour_is_cut_at_the_rope_end():
+    # the mask took in the neighbouring trunk on the right: the rope ends at the roped stem's
+    # edge, so that side's edge is searched there; the left side stays
+    rgb, mask = roped_pair(rope_to=260)
+    perc = rope_perception(rgb, mask, 201, 259)
+    gray = rgb.astype(np.float32).mean(2)
+    e1 = edges_two_pass(gray, mask, perc)
+    assert e1 and e1.right_xy[0] > 320          # the mask-guided pair spans both trunks
+    e, n = edges_checked_by_rope(gray, perc, e1)
+    assert n == 1
+    assert abs(e.left_xy[0] - 199.5) < 1.0 and abs(e.right_xy[0] - 259.5) < 1.0
+    assert abs(e.width_px - 60.0) < 1.5
+
+
+def test_rope_seen_on_part_of_the_stem_keeps_the_mask_edge():
+    # the rope goes on, darker, into the stem's shade beyond where the rope band was found:
+    # the mask's edge is the stem's
+    rgb, mask = roped_pair(rope_to=260, shade_from=235)
+    mask[:, 262:] = False                       # the mask is the roped stem's only
+    perc = rope_perception(rgb, mask, 201, 235)
+    gray = rgb.astype(np.float32).mean(2)
+    e1 = edges_two_pass(gray, mask, perc)
+    e, n = edges_checked_by_rope(gray, perc, e1)
+    assert n == 0
+    assert abs(e.right_xy[0] - 259.5) < 1.0
+
+
+def test_the_rope_check_thresholds_come_from_the_config():
+    from monodbh.toolkit.geometry import StemEdgesConfig
+    from monodbh.toolkit.geometry.stem_edges import stem_edges
+    rgb, mask = roped_pair(rope_to=260)
+    perc = rope_perception(rgb, mask, 201, 259)
+    gray = rgb.astype(np.float32).mean(2)
+    e1 = edges_two_pass(gray, mask, perc)
+    # a rope that must stand out more than it can: the mask's edges stay
+    e, n = edges_checked_by_rope(gray, perc, e1, StemEdgesConfig(rope_gap_min_contrast=10.0))
+    assert n == 0 and e is e1
+    # the checked edges (60 px) against the rope band (58 px): within the default ratio 1.3, not 1.0
+    edges, flags, width_vs_rope = stem_edges(perc, gray)
+    assert flags == ["edge_at_rope_end"] and width_vs_rope == 0.0
+    edges, flags, width_vs_rope = stem_edges(perc, gray, StemEdgesConfig(width_rope_ratio_max=1.0))
+    assert flags == ["edge_at_rope_end", "width_disagrees_rope"]
+    assert width_vs_rope == pytest.approx(abs(np.log(edges.width_px / 58.0)))

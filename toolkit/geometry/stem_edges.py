@@ -1,0 +1,155 @@
+"""The roped stem's edge pair at the rope, checked against the rope band (:func:`stem_edges`).
+
+Imported by :mod:`.measure`; imports :mod:`.edges` and the rope package's red-ness map
+(``monodbh.toolkit.rope.redness_map``). The tree mask guides the edge search; the rope, tied round
+the roped stem only, tells where a coarse mask took in a neighbouring trunk (decision record
+``docs/decisions/stem-edges-rope-check.md``).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from ..rope import redness_map
+from .config import EdgeConfig, StemEdgesConfig
+from .edges import REASON_OUT_OF_PHOTO, TrunkEdges, combine_edges, rope_row_contrast, trunk_edges
+from .perception import Perception
+
+__all__ = ["stem_edges", "edges_two_pass", "edges_checked_by_rope"]
+
+
+def edges_two_pass(gray: np.ndarray, mask: np.ndarray, perc: Perception, config: StemEdgesConfig | None = None,
+                   edge_config: EdgeConfig | None = None) -> TrunkEdges:
+    """Trunk edges at the rope guided by ``mask`` (H, W) bool; a second pass samples across the
+    stem as found (the rope band may be tilted or arced) and is kept unless its width differs
+    from the first's by ``config.second_pass_max_change`` or more."""
+    cfg = config or StemEdgesConfig()
+    edges = trunk_edges(gray, mask, perc.rope_xy, perc.rope_dir, rope_half_px=perc.rope_half_px,
+                        search_px=perc.edge_search_px, config=edge_config)
+    if edges:
+        across = np.array([edges.along[1], -edges.along[0]])
+        mid0 = 0.5 * (edges.left_xy + edges.right_xy)
+        e2 = trunk_edges(gray, mask, mid0, across, rope_half_px=perc.rope_half_px,
+                         search_px=perc.edge_search_px, config=edge_config)
+        if e2 and abs(e2.width_px / edges.width_px - 1) < cfg.second_pass_max_change:
+            edges = e2
+    return edges
+
+
+def _rope_contrast_fn(perc: Perception, gray_shape: tuple[int, int], edges: TrunkEdges, reach_px: float,
+                      w3: float):
+    """``contrast(lo, hi)``: the median red-ness contrast of the rope's row (against the rows
+    beside it) at positions ``lo..hi`` across the stem (pixels from the rope centre, every
+    0.5 px; nan for fewer than 3), read in a window of the photo around the stem only."""
+    c = np.asarray(perc.rope_xy, np.float64)
+    h = max(0.5, float(perc.rope_half_px))
+    sag = 0.05 * w3
+    m = int(np.ceil(reach_px + 6 * h + 8 + sag))
+    H, W = gray_shape
+    x0, y0 = max(0, int(c[0]) - m), max(0, int(c[1]) - m)
+    x1, y1 = min(W, int(c[0]) + m + 1), min(H, int(c[1]) + m + 1)
+    F = redness_map(np.ascontiguousarray(perc.rgb[y0:y1, x0:x1]))
+    c_loc = c - (x0, y0)
+
+    def contrast(lo, hi):
+        ss = np.arange(lo, hi, 0.5)
+        if len(ss) < 3:
+            return np.nan
+        return float(np.median(rope_row_contrast(F, c_loc, perc.rope_dir, edges.across, edges.along, ss,
+                                                 rope_half_px=h, sag_px=sag)))
+    return contrast
+
+
+def edges_checked_by_rope(gray: np.ndarray, perc: Perception, edges: TrunkEdges,
+                          config: StemEdgesConfig | None = None,
+                          edge_config: EdgeConfig | None = None) -> tuple[TrunkEdges, int]:
+    """Check each side of the mask-guided ``edges`` against the rope (``config.rope_gap_*``).
+
+    The rope is tied round the roped stem only: where the mask's edge lies well beyond the end of
+    the rope band and the rope's row there is no redder than the rows beside it, the mask has
+    taken in a neighbouring trunk (or background) and that side's edge is searched at the rope's
+    end instead. Where the rope goes on (faintly, e.g. in the stem's shade), the mask's edge stays.
+
+    Parameters
+    ----------
+    gray : (H, W) float32 intensity of ``perc.rgb``.
+    perc : :class:`~.perception.Perception` (its rope, rope band mask and photo are used).
+    edges : the mask-guided :class:`~.edges.TrunkEdges`.
+
+    Returns
+    -------
+    (edges, n_sides): the checked edges and how many sides were replaced (0-2).
+    """
+    cfg = config or StemEdgesConfig()
+    e3 = edges_two_pass(gray, perc.rope_band_mask, perc, cfg, edge_config)
+    if not e3:
+        return edges, 0
+    c = np.asarray(perc.rope_xy, np.float64)
+    u = edges.across
+    sL1, sR1 = float((edges.left_xy - c) @ u), float((edges.right_xy - c) @ u)
+    sL3, sR3 = float((e3.left_xy - c) @ u), float((e3.right_xy - c) @ u)
+    w3 = sR3 - sL3
+    gap_min = max(cfg.rope_gap_min_px, cfg.rope_gap_min_fraction * w3)
+    gaps = {"left": sL3 - sL1, "right": sR1 - sR3}
+    if w3 <= 4 or max(gaps.values()) <= gap_min:
+        return edges, 0
+    contrast = _rope_contrast_fn(perc, gray.shape, edges, max(abs(sL1), abs(sR1)), w3)
+    c_in = contrast(sL3 + 0.15 * w3, sR3 - 0.15 * w3)
+    if not c_in > cfg.rope_gap_min_contrast:
+        return edges, 0
+    left, right, n = edges, edges, 0
+    if gaps["left"] > gap_min and contrast(sL1 + 1, sL3 - 1) < cfg.rope_gap_max_ratio * c_in:
+        left, n = e3, n + 1
+    if gaps["right"] > gap_min and contrast(sR3 + 1, sR1 - 1) < cfg.rope_gap_max_ratio * c_in:
+        right, n = e3, n + 1
+    if n == 0:
+        return edges, 0
+    return (e3 if n == 2 else combine_edges(left, right, frame=edges)), n
+
+
+def stem_edges(perc: Perception, gray: np.ndarray, config: StemEdgesConfig | None = None,
+               edge_config: EdgeConfig | None = None) -> tuple[TrunkEdges, list[str], float]:
+    """The roped stem's silhouette edges at the rope, checked against the rope band.
+
+    Parameters
+    ----------
+    perc : :class:`~.perception.Perception` (its edge mask, rope and rope band are used).
+    gray : (H, W) float32 intensity of ``perc.rgb``.
+    config, edge_config : :class:`~.config.StemEdgesConfig`, :class:`~.config.EdgeConfig`
+        (defaults when None).
+
+    Returns
+    -------
+    (edges, flags, width_vs_rope): :class:`~.edges.TrunkEdges` (falsy with a reason when not
+    found), the flags this step raised, and ``|ln(edge width / rope length)|`` when the two
+    disagree (a sigma term, else 0).
+    """
+    cfg = config or StemEdgesConfig()
+    emask = perc.tree_mask if perc.edge_mask is None else perc.edge_mask
+    edges = edges_two_pass(gray, emask, perc, cfg, edge_config)
+    flags: list[str] = []
+    width_vs_rope = 0.0     # |ln(edge width / rope length)| when the two disagree (a sigma term)
+    if edges and perc.rope_band_mask is not None:
+        # a side where the coarse mask runs on beyond the rope's end with no rope there is a
+        # neighbouring trunk merged in: that side's edge is taken at the rope's end
+        edges, n_sides = edges_checked_by_rope(gray, perc, edges, cfg, edge_config)
+        if n_sides:
+            flags.append("edges_from_rope_band" if n_sides == 2 else "edge_at_rope_end")
+    if edges and perc.rope_length_px and perc.rope_band_mask is not None:
+        # the rope spans the stem: a stem much wider than the rope band means edges the rope
+        # check could not settle; the gap widens the sigma
+        ratio = edges.width_px / perc.rope_length_px
+        if ratio > cfg.width_rope_ratio_max:
+            flags.append("width_disagrees_rope")
+            width_vs_rope = float(abs(np.log(ratio)))
+    if not edges and perc.rope_band_mask is not None:
+        # the coarse mask's borders are nowhere near the stem's (e.g. a close stem merged with
+        # its neighbour, the mask border tens of pixels off): the rope spans the stem, so its
+        # band's ends guide the search instead
+        e3 = edges_two_pass(gray, perc.rope_band_mask, perc, cfg, edge_config)
+        lo, hi = cfg.band_width_ratio
+        if e3 and (not perc.rope_length_px or lo < e3.width_px / perc.rope_length_px < hi):
+            edges = e3
+            flags.append("edges_from_rope_band")
+        elif e3.reason == REASON_OUT_OF_PHOTO:
+            edges = e3          # the more telling reason
+    return edges, flags, width_vs_rope
