@@ -2,7 +2,7 @@
 
 Where a stem meets the ground gives the photo's scale: the rope is 1.3 m above it, so the
 angle between the rope and the base fixes the distance (single-view metrology, see
-``monodbh.toolkit.geometry.metrology_distance``). The classical edge tracker of session 6
+``monodbh.toolkit.geometry.metrology_distance``). The classical edge tracker
 finds about 1 in 5 of the visible bases; this network reads the stem below the rope as a whole.
 
 The strip (:func:`stem_strip`)

@@ -17,7 +17,7 @@ Trees (:class:`TreePredictor`)
     network returns ``R_n`` (front depth) and ``G_n`` (thickness along each pixel's ray) in
     crop units: ``z1 = z_ref (1 + R_n S_px / f)``, ``z2 = z1 + c z_ref G_n S_px / f`` with ``c``
     the cosine of the pixel's ray to the optical axis (:func:`ray_cos_map`,
-    :func:`silhouette_to_metric`; files before session 7 have ``thickness: "z"`` and no ``c``).
+    :func:`silhouette_to_metric`; older files have ``thickness: "z"`` and no ``c``).
 """
 from __future__ import annotations
 
@@ -273,7 +273,7 @@ class DepthPredictor(_GanPredictor):
         Manifest to look the shipped model up in (default ``models/manifest.json``).
     flip_tta : bool
         Average the log-depth codes of the photo and of its mirror image (test-time
-        augmentation; twice the network time). Measured (session 8, int8): held-out AbsRel
+        augmentation; twice the network time). Measured (int8; docs/decisions/threads.md): held-out AbsRel
         0.316 -> 0.311, delta1 0.619 -> 0.624 (seed 9500, 64 photos); benchmark DBH MAE
         -0.24 +- 0.14 cm paired (seed 9000, 87 photos).
     """
@@ -355,7 +355,7 @@ class TreePredictor(_GanPredictor):
         self.size = int(self.input_shape("crop")[-1])
         self.k_default = float(self.extra.get("k_infer", K_INFER))
         self.min_crop_px = float(self.extra.get("min_crop_px", MIN_CROP_PX))
-        #: "ray": G_n is the thickness along each pixel's ray; "z" (files before session 7): in z
+        #: "ray": G_n is the thickness along each pixel's ray; "z" (older files): in z
         self.thickness = str(self.extra.get("thickness", "z"))
 
     def feeds(self, rgb: np.ndarray, instance_mask: np.ndarray, center_xy: tuple[float, float],

@@ -115,7 +115,7 @@ def test_tree_predictor_tiny(tiny_models):
     assert box == (40.0, 20.0, 80.0)                      # k = 4: side 4 x 20 px
     _, _, box = p.predict(rgb, m, (80.0, 60.0), 2.0, 300.0)
     assert box[2] == 24.0                                  # minimum crop side
-    assert p.thickness == "ray"                            # the spec of models since session 7
+    assert p.thickness == "ray"                            # the spec of the current models
     with pytest.raises(ValueError, match="needs K"):
         p.to_metric(R, G, 5.0, (40.0, 20.0, 80.0), 300.0)
     K = np.array([[300.0, 0, 80], [0, 300.0, 60], [0, 0, 1]])

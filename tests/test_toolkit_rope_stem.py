@@ -100,7 +100,7 @@ def test_band_detector_evidence_is_used():
 
 def test_real_rope_free_photos_give_no_stem_rope():
     """The 24 real rope-free photos, segmented by the shipped segmenter: no rope on any stem
-    (measured in session 8: the best trunk-like band scores -2.6, the threshold is -1)."""
+    (measured: the best trunk-like band scores -2.6, the threshold is -1)."""
     import glob
     import os
     photos = sorted(glob.glob("/work/shared/data/real_trees/*.jpg"))

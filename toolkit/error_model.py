@@ -231,7 +231,7 @@ def distance_calibration_fit(rows: list[dict], min_n: int = 20) -> dict | None:
     ``sigma`` is the tail-aware 1-sigma (:func:`tail_sigma`) of the calibrated distances: the
     uncertainty of a calibrated scale.
 
-    Measured (session 7, calibration sets seeds 9100 + 9200, 105 network-led photos):
+    Measured (calibration sets seeds 9100 + 9200, 105 network-led photos):
     ``a = 0.34, b = 0.71``; on the benchmark (seed 9000) DBH MAE 7.86 -> 6.47 cm, median
     5.87 -> 4.31 cm, 2-sigma coverage unchanged (97.6 %).
     """

@@ -33,7 +33,7 @@ ROPE_FULL_RES = True
 #: (``rope_finder.finder_check``)
 ROPE_FINDER_CROSS_CHECK = True
 #: the segmenter and the depth network run on a background thread while the band detector searches
-#: for the rope (see docs/STATUS.md, session 16)
+#: for the rope (docs/decisions/threads.md)
 OVERLAP_DEPTH = True
 #: the depth network sees the photo and its mirror image (see :class:`~monodbh.models.runtime_gan.DepthPredictor`)
 DEPTH_FLIP_TTA = True

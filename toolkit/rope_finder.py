@@ -11,7 +11,7 @@ stem: within :data:`FINDER_MAX_TILT_DEG` of horizontal, so a vertical paint mark
 rope end is no band), and no other
 candidate comes close (:data:`FINDER_RIVAL_SHARE` of its mass: two roped trees, or a rope and a
 red thing the finder cannot tell apart, then the user picks). Thresholds chosen on the
-calibration sets (seeds 9100-9600), see ``docs/STATUS.md``, session 12.
+calibration sets (seeds 9100-9600), see ``docs/decisions/rope-finder.md``.
 
 Examples
 --------
@@ -117,7 +117,7 @@ def rope_from_finder(components, shape: tuple[int, int], *, pick_xy=None, min_pe
 FINDER_SUPPORT_RADIUS_PX: float = 8.0
 #: ... at these log-odds or more (p 0.73: any evidence at all). Calibration sets (seeds
 #: 9100-9600): the 314 right ropes the pipeline measured had support >= 2.77, the 2 wrong ones
-#: (red leaves in a rope-free scene, tape on another tree) none; see ``docs/STATUS.md``, session 15
+#: (red leaves in a rope-free scene, tape on another tree) none; see ``docs/decisions/rope-finder.md``
 FINDER_SUPPORT_MIN_PEAK: float = 1.0
 
 

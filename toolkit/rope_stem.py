@@ -15,7 +15,7 @@ own colour, not orange), its height above the stem's lowest pixel in trunk width
 faint band the line detector saw there. :data:`STEM_WEIGHTS` turns them into a log-odds score
 (a logistic fit on the calibration sets, seeds 9100 and 9200); :func:`trunk_like` requires the
 row to cross a trunk, not a crown. Measured on the benchmark (seed 9000) and on the 24 real
-rope-free photos: see ``docs/STATUS.md``, session 8.
+rope-free photos: see ``docs/decisions/stem-search.md``.
 
 Examples
 --------
@@ -139,7 +139,7 @@ def band_features(xs: np.ndarray, v: np.ndarray, i: int, c: np.ndarray, zpix: np
     return feats
 
 
-#: logistic weights of :func:`stem_band_score` (``python -m monodbh.toolkit.fit_rope_stem``, session 8:
+#: logistic weights of :func:`stem_band_score` (``python -m monodbh.toolkit.fit_rope_stem``;
 #: calibration sets seeds 9100 + 9200, 4392 bands of which 159 on the true rope).
 STEM_WEIGHTS = {"bias": -8.57, "log_contrast": 0.637, "log_zpix": 1.043, "log_zprof": 0.427, "log_width": 1.274,
                 "second": 0.306, "red_shift": 1.023, "h_lo": -1.169, "h_hi": -1.058, "main": 0.44, "orange": 1.11}
@@ -292,7 +292,7 @@ STEM_MAX_WIDTH_CHANGE = 0.4
 def trunk_like(band: StemBand) -> bool:
     """Whether the band's row crosses a trunk (one piece of near-constant width), not a crown.
 
-    Measured (session 8): of 278 true rope bands on the calibration sets and the benchmark, 5
+    Measured (docs/decisions/stem-search.md): of 278 true rope bands on the calibration sets and the benchmark, 5
     cross in two pieces and 6 where the width changes more; of the 4 best false bands on the 24
     real rope-free photos, all fail (crown branches).
     """
@@ -328,7 +328,7 @@ def stem_evidence_choice(rgb: np.ndarray, instance: np.ndarray, points, *, rope_
     (:func:`stem_bands` with ``near_xy``). Returns the index of the one point whose band scores
     above ``min_score`` while every other scores below ``min_score - margin`` (or has none),
     else None. The pipeline uses it when the band detector finds two ropes alike. Measured
-    (session 8): of the 280 calibration and benchmark photos, 2 were ambiguous; in both, the
+    (docs/decisions/stem-search.md): of the 280 calibration and benchmark photos, 2 were ambiguous; in both, the
     true rope's band scored 1.5-1.6 and the rival's -3.7 or had none.
 
     Parameters
@@ -352,7 +352,7 @@ def stem_evidence_choice(rgb: np.ndarray, instance: np.ndarray, points, *, rope_
 #: with the rope verifier (``monodbh.models.runtime_rope``): bands per stem it is shown (as in
 #: its training banks), the log-odds it needs, and the margin below the best within which a band
 #: on another stem makes the answer ambiguous. Set on the calibration sets (seeds 9100-9400,
-#: never used to train it): see ``docs/STATUS.md``, session 11.
+#: never used to train it): see ``docs/decisions/rope-verifier.md``.
 VERIFIER_PER_STEM = 4
 VERIFIER_MIN_LOGIT = 3.0
 VERIFIER_MARGIN = 1.0

@@ -65,7 +65,7 @@ def _shipped_spec(spec: ModelSpec, shipped_path: Path) -> ModelSpec:
     except (OSError, KeyError, ValueError, TypeError):
         return spec
     if spec.kind == "treenet" and "thickness" not in old.extra:
-        old = dataclasses.replace(old, extra={**old.extra, "thickness": "z"})   # before session 7
+        old = dataclasses.replace(old, extra={**old.extra, "thickness": "z"})   # runs that measured the thickness in z
     return old
 
 
@@ -170,7 +170,7 @@ def export_run(run_dir: str | os.PathLike, ship: bool = False, n_calib: int = 32
     spec: ModelSpec = model.spec
     kind = spec.kind
     if kind == "treenet" and "thickness" in spec.extra:
-        # how the run's targets measured the thickness (runs before session 7: in z)
+        # how the run's targets measured the thickness (older runs: in z)
         spec = dataclasses.replace(spec, extra={**spec.extra,
                                                 "thickness": config.get("train", {}).get("thickness", "z")})
     seed = int(config.get("seed", 0))

@@ -41,7 +41,7 @@ SILHOUETTE_DOC = (
     "axis: R_n = (z1 - z_ref) * f / (z_ref * S), G_n = (z2 - z1) / c * f / (z_ref * S) (thickness "
     "along the ray); so z1 = z_ref * (1 + R_n * S / f), z2 = z1 + c * z_ref * G_n * S / f")
 
-#: how ``G_n`` is measured: "ray" (along each pixel's ray, since session 7) or "z" (before)
+#: how ``G_n`` is measured: "ray" (along each pixel's ray, current models) or "z" (older models)
 THICKNESS = "ray"
 
 

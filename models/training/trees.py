@@ -79,7 +79,7 @@ class TreeTrainConfig:
     mask_morph: float = 0.3        #: probability of a 1-px erode/dilate of the input mask
     hflip: float = 0.5
     #: "ray": thickness target along each pixel's ray (position-free, the default since session
-    #: 7); "z": in z (runs before session 7, whose config has no such field)
+    #: 7); "z": in z (older runs, whose config has no such field)
     thickness: str = "ray"
     val_n: int = 64                #: validation samples ...
     val_crops_per_sample: int = 4  #: ... and crops cut from each (random trunk/height, k)
@@ -362,7 +362,7 @@ def train_trees(run_dir: str, steps: int = 20000, data: Any = None, resume: bool
         old = run.read_config()
         options = {**old.get("train", {}), **options}
         if "thickness" not in old.get("train", {}):
-            options.setdefault("thickness", "z")        # a run from before session 7
+            options.setdefault("thickness", "z")        # an older run (no such field)
         if data is None and old.get("data", {}).get("type") != "list":
             data = old["data"]
         if val_data is None and old.get("val_data", {}).get("type") not in ("list", "same"):
