@@ -64,7 +64,7 @@ CONFIGS: dict[str, SegmenterConfig] = {
     "base": SegmenterConfig(256, (32, 64, 128, 192), (1, 2, 2, 2), 128, 64, 4, 6, 512, 2, 256),
     # the same network at a 384 x 384 input (thin stems: 1.5x the pixels across); see docs/TRAINING.md.
     # experiment, 900 steps from the "base" weights: held-out roped IoU 0.744 -> 0.755, PQ 0.41
-    # -> 0.50, but benchmark DBH MAE 6.38 -> 6.75 cm; not shipped (docs/STATUS.md)
+    # -> 0.50, but benchmark DBH MAE 6.38 -> 6.75 cm; not shipped (docs/TRAINING.md)
     "base384": SegmenterConfig(384, (32, 64, 128, 192), (1, 2, 2, 2), 128, 64, 4, 6, 512, 2, 256),
 }
 
