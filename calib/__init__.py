@@ -14,18 +14,41 @@ load_camera, save_camera
 load_photo, read_image_size
     EXIF-upright 8-bit RGB photo loading for the whole toolkit.
 Board, detect_board, calibrate, CalibrationResult, estimate_ground_pose
-    Chessboard/ChArUco calibration and the ground pose from a board photo.
+    Chessboard/ChArUco calibration and the ground pose from a board photo (loaded on first
+    use: measuring a photo never imports the calibration workflow).
 MonodbhError, PhotoError, CalibrationError, CameraFileError
     User-facing errors (one-line messages).
 """
-from .board import Board, Detection, detect_board, parse_board_size
-from .calibrate import CalibrationResult, ViewResult, calibrate, calibrate_views, detect_views
 from .camera import CalibrationInfo, Camera, CameraPose
 from .camera_io import load_camera, save_camera
-from .coverage import CoverageScore, coverage_scores, view_parameters
 from .errors import CalibrationError, CameraFileError, MonodbhError, PhotoError
 from .photo import load_photo, read_image_size
-from .pose import GroundPoseResult, estimate_ground_pose, pose_from_board
+
+#: names of the calibration workflow, imported on first use: measuring a photo with a camera
+#: file needs the camera model, cam.yaml I/O and photo loading only
+_LAZY = {
+    "Board": "board", "Detection": "board", "detect_board": "board", "parse_board_size": "board",
+    "CalibrationResult": "calibration", "ViewResult": "calibration", "calibrate": "calibration",
+    "calibrate_views": "calibration", "detect_views": "calibration",
+    "CoverageScore": "coverage", "coverage_scores": "coverage", "view_parameters": "coverage",
+    "GroundPoseResult": "pose", "estimate_ground_pose": "pose", "pose_from_board": "pose",
+}
+
+
+def __getattr__(name: str):
+    mod = _LAZY.get(name)
+    if mod is None:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    import importlib
+
+    value = getattr(importlib.import_module(f"{__name__}.{mod}"), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_LAZY))
+
 
 __all__ = [
     # camera model and files

@@ -7,7 +7,7 @@ from typing import Any
 import numpy as np
 
 from .board import Board
-from .calibrate import CalibrationResult, ViewResult
+from .calibration import CalibrationResult, ViewResult
 from .errors import CalibrationError
 
 __all__ = ["draw_view_overlay", "write_debug_overlays"]

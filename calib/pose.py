@@ -125,7 +125,7 @@ def estimate_ground_pose(image: Any, camera: Camera, board: Board, *,
     """
     import cv2
 
-    from .calibrate import _to_gray
+    from .calibration import _to_gray
 
     if not isinstance(camera, Camera):
         raise TypeError(f"camera must be a Camera, got {type(camera).__name__}")

@@ -168,7 +168,7 @@ def calibrate(
     with _user_errors():
         import cv2
 
-        from monodbh.calib.calibrate import calibrate as run_calibration
+        from monodbh.calib.calibration import calibrate as run_calibration
         from monodbh.calib.camera_io import save_camera
 
         b = _make_board(board, square, charuco, dictionary, marker, legacy)

@@ -16,7 +16,7 @@ def depth(
     """Metric z-depth (metres, float32) at each photo's resolution from the depth network."""
     from monodbh.calib import load_camera
     from monodbh.calib.errors import MonodbhError
-    from monodbh.toolkit.depth_eval import photo_depth, write_depth
+    from monodbh.toolkit.evaluation.depth_eval import photo_depth, write_depth
     from monodbh.toolkit.pipeline import Session
     try:
         cam = load_camera(calib)
@@ -46,31 +46,13 @@ def eval_depth(
     delta < 1.25^k, in metric depth and median-scaled."""
     import numpy as np
     from rich.console import Console
-    from rich.table import Table
 
-    from monodbh.calib import Camera
-    from monodbh.models.synthetic.io import list_samples, read_sample
-    from monodbh.toolkit.depth_eval import DEPTH_METRIC_KEYS, depth_metrics, photo_depth
+    from monodbh.toolkit.evaluation.depth_eval import evaluate_depth, print_depth_scores
     from monodbh.toolkit.pipeline import Session
     sess = Session(models_dir)
-    idx = list_samples(folder)[: limit or None]
-    if not idx:
+    ms, times = evaluate_depth(folder, sess, limit)
+    if not times:
         typer.echo(f"error: {folder}: no samples", err=True)
         raise typer.Exit(1)
-    ms, times = [], []
-    for i in idx:
-        s = read_sample(folder, i)
-        m = s["meta"]
-        cam = Camera(np.array(m["K"]), np.array(m["dist"]), (m["width"], m["height"]))
-        d, tm = photo_depth(s["path"], cam, sess)
-        ms.append(depth_metrics(d, s["depth"]))
-        times.append(tm.get("depth", 0.0))
-    ms = [x for x in ms if x]
-    t = Table(title=f"depth network on {folder} ({len(ms)} photos)")
-    t.add_column("")
-    for k in DEPTH_METRIC_KEYS:
-        t.add_column(k, justify="right")
-    for prefix, name in (("", "metric"), ("ms_", "median-scaled")):
-        t.add_row(name, *[f"{np.mean([x[prefix + k] for x in ms]):.3f}" for k in DEPTH_METRIC_KEYS])
-    Console().print(t)
+    print_depth_scores(ms, f"depth network on {folder} ({len(ms)} photos)", Console())
     typer.echo(f"depth network median latency {np.median(times):.0f} ms", err=True)

@@ -1,8 +1,58 @@
-"""Entry point of the ``dbh`` command."""
-import typer
+"""Entry point of the ``dbh`` command: the typer app, whose commands are imported on first use.
 
-app = typer.Typer(add_completion=False, no_args_is_help=True,
+Lives here: the command table only. Each command lives in its own ``cli/*_cmd.py`` module, imported
+when that command runs (or when ``dbh --help`` lists them), so ``dbh measure`` never loads the
+calibration, evaluation or training commands.
+"""
+from __future__ import annotations
+
+import importlib
+
+import typer
+from typer.core import TyperGroup
+
+__all__ = ["app", "main", "COMMANDS"]
+
+#: command name -> (module in this package, function), in the order ``dbh --help`` lists them
+COMMANDS = {
+    "synth": ("synth_cmd", "synth"),
+    "calibrate": ("calibrate_cmd", "calibrate"),
+    "calibrate-pose": ("calibrate_cmd", "calibrate_pose"),
+    "measure": ("measure_cmd", "measure"),
+    "reconstruct": ("reconstruct_cmd", "reconstruct"),
+    "eval": ("eval_cmd", "evaluate"),
+    "bench": ("eval_cmd", "bench"),
+    "depth": ("depth_cmd", "depth"),
+    "eval-depth": ("depth_cmd", "eval_depth"),
+    "train": ("train_cmd", "train"),
+    "export": ("train_cmd", "export"),
+    "train-pack": ("train_cmd", "train_pack"),
+}
+
+
+class _LazyGroup(TyperGroup):
+    """A typer group that imports a command's module only when the command is looked up."""
+
+    def list_commands(self, ctx) -> list[str]:
+        return list(super().list_commands(ctx)) + [n for n in COMMANDS if n not in self.commands]
+
+    def get_command(self, ctx, name: str):
+        if name not in self.commands and name in COMMANDS:
+            mod, attr = COMMANDS[name]
+            fn = getattr(importlib.import_module(f"{__package__}.{mod}"), attr)
+            one = typer.Typer(add_completion=False)
+            one.command(name)(fn)
+            self.commands[name] = typer.main.get_command(one)
+        return super().get_command(ctx, name)
+
+
+app = typer.Typer(cls=_LazyGroup, add_completion=False, no_args_is_help=True,
                   help="monodbh: tree DBH and a 3D scene from one photo.")
+
+
+@app.callback()
+def _root() -> None:
+    """monodbh: tree DBH and a 3D scene from one photo."""
 
 
 @app.command()
@@ -10,49 +60,6 @@ def version() -> None:
     """Print the version."""
     from importlib.metadata import version as _v
     typer.echo(_v("monodbh"))
-
-
-# --- training-data commands (lazy: the generator is a training-only extra) ---------------------
-from .synth_cmd import synth as _synth  # noqa: E402  (module imports nothing heavy)
-
-app.command("synth")(_synth)
-
-
-# --- calibration commands (issue 2; logic in cli/calibrate_cmd.py, heavy imports lazy) --------
-from .calibrate_cmd import calibrate as _calibrate, calibrate_pose as _calibrate_pose  # noqa: E402
-
-app.command("calibrate")(_calibrate)
-app.command("calibrate-pose")(_calibrate_pose)
-# --- end calibration commands ------------------------------------------------------------------
-
-
-# --- measuring commands (issue 6; logic in cli/measure_cmd.py, reconstruct_cmd.py, eval_cmd.py;
-# those modules import only typer at top level, everything heavy inside the commands) ----------
-from .eval_cmd import bench as _bench, evaluate as _evaluate  # noqa: E402
-from .measure_cmd import measure as _measure  # noqa: E402
-from .reconstruct_cmd import reconstruct as _reconstruct  # noqa: E402
-
-app.command("measure")(_measure)
-app.command("reconstruct")(_reconstruct)
-app.command("eval")(_evaluate)
-app.command("bench")(_bench)
-# --- end measuring commands --------------------------------------------------------------------
-
-
-# --- depth maps (issue 5) ---------------------------------------------------------------------
-from .depth_cmd import depth as _depth, eval_depth as _eval_depth  # noqa: E402
-
-app.command("depth")(_depth)
-app.command("eval-depth")(_eval_depth)
-
-
-# --- training commands (training-only extra; imports inside the commands) ---------------------
-from .train_cmd import export as _export, train as _train, train_pack as _train_pack  # noqa: E402
-
-app.command("train")(_train)
-app.command("export")(_export)
-app.command("train-pack")(_train_pack)
-# --- end training commands ---------------------------------------------------------------------
 
 
 def main() -> None:

@@ -96,7 +96,7 @@ def _table(results, console) -> None:
     from rich.table import Table
     from rich.text import Text
 
-    from monodbh.toolkit.overlay import format_dbh
+    from monodbh.toolkit.outputs.overlay import format_dbh
 
     t = Table(show_header=True, header_style="bold", expand=False)
     # on a narrow terminal the long columns wrap instead of collapsing to nothing
@@ -127,9 +127,9 @@ def _table(results, console) -> None:
 def _network_error_text() -> str:
     """`` (about N % off, median)`` from the shipped error model's calibrated distances, or ``""``."""
     try:
-        from monodbh.models.runtime import MANIFEST_PATH, load_manifest
-        from monodbh.toolkit.pipeline import fresh_error_model
-        dc = fresh_error_model(load_manifest(MANIFEST_PATH)).get("distance_calibration") or {}
+        from monodbh.models.runtime import MANIFEST_PATH, fresh_error_model, load_manifest
+        from monodbh.toolkit.config import MeasureConfig
+        dc = fresh_error_model(load_manifest(MANIFEST_PATH), MeasureConfig().depth_mirror_average).get("distance_calibration") or {}
         m = float(dc["median_abs_ln_after"])
     except Exception:          # no manifest, no error model: the advice stands without a figure
         return ""

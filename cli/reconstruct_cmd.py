@@ -19,7 +19,7 @@ FRAMES = ("camera", "level", "world")
 
 
 def _check_output(path: Path) -> Path:
-    from monodbh.toolkit.cloud_io import CLOUD_EXTENSIONS
+    from monodbh.toolkit.outputs.cloud_io import CLOUD_EXTENSIONS
 
     if path.suffix.lower() not in CLOUD_EXTENSIONS:
         raise typer.BadParameter(f"{path}: unknown point-cloud extension {path.suffix or '(none)'!r}; "
@@ -92,7 +92,7 @@ def reconstruct(
 
     from monodbh.calib import MonodbhError
     from monodbh.toolkit.batch import DEFAULT_RECONSTRUCT, error_result, normalise_result, one_line
-    from monodbh.toolkit.cloud_io import write_cloud
+    from monodbh.toolkit.outputs.cloud_io import write_cloud
     from monodbh.toolkit.result import MeasureResult, PointCloud
 
     backend = make_backend(measure_fn, session_factory, models_dir, default_fn=DEFAULT_RECONSTRUCT)
@@ -135,7 +135,7 @@ def reconstruct(
         typer.echo(json.dumps(res.to_json_dict(), ensure_ascii=False))
     from rich.console import Console
 
-    from monodbh.toolkit.overlay import format_dbh
+    from monodbh.toolkit.outputs.overlay import format_dbh
 
     con = Console(stderr=True, highlight=False, soft_wrap=True)
     con.print(f"{output}: {len(cloud):,} points, {n_trees} tree{'s' if n_trees != 1 else ''} "

@@ -6,24 +6,25 @@ from typing import List, Optional
 
 import typer
 
-KINDS = {"segmenter": "segmenter", "depth": "cden", "trees": "treenet", "base": "basenet", "rope": "ropenet", "ropeseg": "ropeseg"}
+#: the networks ``dbh train`` trains, by kind (the manifest's, the registry's and the file's name)
+KINDS = ("segmenter", "depth", "tree", "stem_base", "rope_verifier", "rope_finder")
 
 
 def train(
-    kind: str = typer.Argument(..., help="segmenter | depth | trees | base (the stem-base finder) | rope (the rope-band verifier) | ropeseg (the mask-free rope finder)"),
+    kind: str = typer.Argument(..., help="segmenter | depth | tree | stem_base (the stem-base finder) | rope_verifier (the rope-band verifier) | rope_finder (the mask-free rope finder)"),
     out: Path = typer.Option(..., "--out", "-o", help="Run folder (config.json, checkpoint.pt, log.jsonl)."),
     steps: int = typer.Option(20000, "--steps", min=1, help="Total optimiser steps."),
     resume: bool = typer.Option(False, "--resume", help="Continue from OUT/checkpoint.pt."),
-    data: Optional[List[Path]] = typer.Option(None, "--data", help="dbh synth folder(s) (rope: .npz banks of `python -m monodbh.toolkit.fit_rope_stem --bank`; ropeseg: of `python -m monodbh.models.training.ropeseg_bank`); default: render on the fly."),
+    data: Optional[List[Path]] = typer.Option(None, "--data", help="dbh synth folder(s) (rope_verifier: .npz banks of `python -m monodbh.toolkit.evaluation.fit_rope_stem --bank`; rope_finder: of `python -m monodbh.models.training.rope_finder_bank`); default: render on the fly."),
     val: Optional[List[Path]] = typer.Option(None, "--val", help="Validation folder(s) (seeds never used in training)."),
     stop_at: Optional[int] = typer.Option(None, "--stop-at", help="Stop (checkpointed) after this many steps."),
-    size: str = typer.Option("base", "--size", help="Model size: base | tiny | wide (cden/treenet: the wider first-run configs)."),
+    size: str = typer.Option("base", "--size", help="Model size: base | tiny | wide (depth/tree: the wider first-run configs)."),
     batch_size: Optional[int] = typer.Option(None, "--batch-size"),
-    crop: Optional[int] = typer.Option(None, "--crop", help="ropeseg: training window side in pixels (even; "
+    crop: Optional[int] = typer.Option(None, "--crop", help="rope_finder: training window side in pixels (even; "
                                        "default 128, at most the bank's 192-pixel tiles)."),
     threads: Optional[int] = typer.Option(None, "--threads", help="CPU threads (default: all cores)."),
     init: Optional[Path] = typer.Option(None, "--init", exists=True, dir_okay=False,
-                                        help="Warm start (new runs) from a shipped model, e.g. models/cden_int8.onnx, "
+                                        help="Warm start (new runs) from a shipped model, e.g. models/depth_int8.onnx, "
                                              "or a `dbh train-pack` weights file."),
     augment: Optional[str] = typer.Option(None, "--augment", help="Segmenter augmentation preset: default | "
                                           "strong (wider colour jitter)."),
@@ -45,8 +46,8 @@ def train(
     if batch_size:
         opts["batch_size"] = batch_size
     if crop is not None:
-        if kind != "ropeseg":
-            raise typer.BadParameter("only the rope finder (ropeseg) takes a window size", param_hint="--crop")
+        if kind != "rope_finder":
+            raise typer.BadParameter("only the rope finder (rope_finder) takes a window size", param_hint="--crop")
         opts["crop"] = crop
     if threads:
         opts["threads"] = threads
@@ -58,18 +59,18 @@ def train(
     elif kind == "depth":
         from monodbh.models.training.depth import train_depth
         res = train_depth(str(out), steps, data=d, resume=resume, val_data=v, stop_at=stop_at, **opts)
-    elif kind == "base":
-        from monodbh.models.training.basenet import train_basenet
-        res = train_basenet(str(out), steps, data=d, resume=resume, val_data=v, stop_at=stop_at, **opts)
-    elif kind == "rope":
-        from monodbh.models.training.ropenet import train_ropenet
-        res = train_ropenet(str(out), steps, data=d, resume=resume, val_data=v, stop_at=stop_at, **opts)
-    elif kind == "ropeseg":
-        from monodbh.models.training.ropeseg import train_ropeseg
-        res = train_ropeseg(str(out), steps, data=d, resume=resume, val_data=v, stop_at=stop_at, **opts)
+    elif kind == "stem_base":
+        from monodbh.models.training.stem_base import train_stem_base
+        res = train_stem_base(str(out), steps, data=d, resume=resume, val_data=v, stop_at=stop_at, **opts)
+    elif kind == "rope_verifier":
+        from monodbh.models.training.rope_verifier import train_rope_verifier
+        res = train_rope_verifier(str(out), steps, data=d, resume=resume, val_data=v, stop_at=stop_at, **opts)
+    elif kind == "rope_finder":
+        from monodbh.models.training.rope_finder import train_rope_finder
+        res = train_rope_finder(str(out), steps, data=d, resume=resume, val_data=v, stop_at=stop_at, **opts)
     else:
-        from monodbh.models.training.trees import train_trees
-        res = train_trees(str(out), steps, data=d, resume=resume, val_data=v, stop_at=stop_at, **opts)
+        from monodbh.models.training.tree import train_tree
+        res = train_tree(str(out), steps, data=d, resume=resume, val_data=v, stop_at=stop_at, **opts)
     typer.echo(f"{kind}: stopped at step {res.get('step')}; validation {res.get('val')}", err=True)
 
 

@@ -9,7 +9,7 @@ def roped_scenes(seed: int, n: int):
     pytest.importorskip("embreex")
     from monodbh.calib import Camera
     from monodbh.models.synthetic import generate_sample
-    from monodbh.toolkit.gt import perception_from_ground_truth
+    from monodbh.toolkit.evaluation.ground_truth import perception_from_ground_truth
 
     for i in range(n):
         s = generate_sample(seed, i, (640, 480))

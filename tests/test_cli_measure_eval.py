@@ -9,30 +9,38 @@ from PIL import Image
 from typer.testing import CliRunner
 
 from monodbh.calib import Camera, MonodbhError, save_camera
-from monodbh.cli.eval_cmd import eval_metrics, gt_rope_px
 from monodbh.cli.main import app
-from monodbh.toolkit.cloud_io import read_cloud
+from monodbh.toolkit.outputs.cloud_io import read_cloud
 from monodbh.toolkit.result import MeasureResult, PointCloud
 
 MOD = "test_cli_measure_eval"
 W, H = 64, 48
 
 
-def fake_eval_measure(path, camera, *, pick_xy=None, want_cloud=False, want_debug=False, session=None,
-                      gt=None):
-    """Reads the sample's own JSON: GT + 1 cm / GT - 1 cm (sigma 0.8); exact with gt=."""
+def fake_eval_measure(path, camera, *, pick_xy=None, want_cloud=False, want_debug=False, session=None):
+    """Reads the sample's own JSON: GT + 1 cm / GT - 1 cm (sigma 0.8)."""
     meta = json.loads(Path(path).with_suffix(".json").read_text())
     assert camera.image_size == (W, H) and camera.fx == meta["K"][0][0]
     if not meta["roped_tree"]:
         raise MonodbhError(f"{path}: no red rope found")
     true = meta["trees"][meta["roped_tree"] - 1]["dbh_m"] * 100
-    if gt is not None:
-        assert gt["depth"].shape == (H, W) and gt["meta"]["seed"] == meta["seed"]
-        off = 0.0
-    else:
-        off = 1.0 if meta["seed"] % 2 == 0 else -1.0
+    off = 1.0 if meta["seed"] % 2 == 0 else -1.0
     return MeasureResult(photo=path, dbh_cm=true + off, dbh_sigma_cm=0.8, distance_m=4.0,
                          scale_source="rope", timings_ms={"segment": 10.0 + meta["seed"], "fit": 1.0})
+
+
+def fake_gt_measure(path, camera, *, session=None, **kw):
+    """A ground-truth measure function: reads the sample's ground truth beside the photo; exact."""
+    from monodbh.toolkit.evaluation.synth_samples import read_ground_truth
+
+    assert session is None
+    gt = read_ground_truth(path)
+    meta = json.loads(Path(path).with_suffix(".json").read_text())
+    assert gt["depth"].shape == (H, W) and gt["meta"]["seed"] == meta["seed"]
+    if not meta["roped_tree"]:
+        raise MonodbhError(f"{path}: no red rope found")
+    return MeasureResult(photo=path, dbh_cm=meta["trees"][meta["roped_tree"] - 1]["dbh_m"] * 100,
+                         dbh_sigma_cm=0.8, distance_m=4.0)
 
 
 def fake_reconstruct(path, camera, session=None, pick_xy=None):
@@ -79,7 +87,7 @@ def test_eval_metrics_and_report(synth_dir, tmp_path):
 def test_eval_gt_perception_and_limit(synth_dir, tmp_path):
     rep = tmp_path / "report.json"
     r = CliRunner().invoke(app, ["eval", str(synth_dir), "--gt-perception", "--limit", "2", "--json", str(rep),
-                                 "--measure-fn", f"{MOD}:fake_eval_measure"])
+                                 "--measure-fn", f"{MOD}:fake_gt_measure", "--session-factory", "none"])
     assert r.exit_code == 0, r.output
     m = json.loads(rep.read_text())["metrics"]
     assert m["samples"] == 2 and m["mae_cm"] == pytest.approx(0.0)
@@ -109,35 +117,6 @@ def test_eval_tap_rope_passes_the_rope_pixel_as_pick(synth_dir, tmp_path):
     d = json.loads(rep.read_text())
     assert d["tap_rope"]["tapped"] == 2 and d["metrics"]["detection_rate"] == 1.0
     assert d["metrics"]["mae_cm"] == pytest.approx(0.0) and d["metrics"]["false_measurements"] == 0
-
-
-def test_eval_metrics_detection_and_false_positive():
-    recs = [{"gt_dbh_cm": 30.0, "dbh_cm": None, "dbh_sigma_cm": None, "error": "x: no rope", "photo": "x"},
-            {"gt_dbh_cm": 20.0, "dbh_cm": 22.0, "dbh_sigma_cm": 1.5, "error": None},
-            {"gt_dbh_cm": None, "dbh_cm": 12.0, "dbh_sigma_cm": 1.0, "error": None}]
-    m = eval_metrics(recs)
-    assert m["detection_rate"] == 0.5 and m["bias_cm"] == 2.0 and m["coverage_1sigma"] == 0.0
-    assert m["refusal_rate"] == 0.0 and m["false_measurements"] == 1 and m["failure_reasons"] == {"no rope": 1}
-
-
-def test_eval_metrics_by_rope_thickness():
-    recs = [{"gt_dbh_cm": 30.0, "gt_rope_px": 0.6, "dbh_cm": None, "error": "x: no rope", "photo": "x"},
-            {"gt_dbh_cm": 30.0, "gt_rope_px": 0.9, "dbh_cm": 33.0, "dbh_sigma_cm": 2.0, "error": None},
-            {"gt_dbh_cm": 20.0, "gt_rope_px": 1.5, "dbh_cm": 21.0, "dbh_sigma_cm": 2.0, "error": None},
-            {"gt_dbh_cm": 20.0, "gt_rope_px": 7.0, "dbh_cm": 19.0, "dbh_sigma_cm": 2.0, "error": None},
-            {"gt_dbh_cm": 20.0, "dbh_cm": 19.0, "dbh_sigma_cm": 2.0, "error": None}]   # no thickness: left out
-    b = eval_metrics(recs)["by_rope_px"]
-    assert list(b) == ["0-1 px", "1-2 px", ">=5 px"]
-    assert b["0-1 px"] == {"roped": 2, "measured": 1, "detection_rate": 0.5, "mae_cm": 3.0}
-    assert b["1-2 px"]["detection_rate"] == 1.0 and b[">=5 px"]["mae_cm"] == 1.0
-
-
-def test_gt_rope_px_from_a_sample_record():
-    meta = {"roped_tree": 2, "K": [[1000.0, 0, 0], [0, 1000.0, 0], [0, 0, 1]], "rope": {"tube_diameter_m": 0.008},
-            "trees": [{"id": 1, "bh_point_cam": [0, 0, 3.0], "r_bh_m": 0.1},
-                      {"id": 2, "bh_point_cam": [0, 0, 4.1], "r_bh_m": 0.1}]}
-    assert gt_rope_px(meta) == pytest.approx(2.0)
-    assert gt_rope_px({"roped_tree": None, "trees": []}) is None
 
 
 def test_reconstruct_ply_las_and_errors(tmp_path):
@@ -198,22 +177,3 @@ def test_bench_fresh_process(tmp_path, monkeypatch):
     r = CliRunner().invoke(app, ["bench", str(other), "--measure-fn", f"{MOD}:fake_eval_measure",
                                  "--session-factory", "none"])
     assert r.exit_code == 1 and "no --calib given" in r.output
-
-
-def test_a_measurement_on_another_band_counts_as_a_wrong_tree(tmp_path):
-    from monodbh.cli.eval_cmd import on_true_rope
-
-    meta = {"roped_tree": 2, "width": 1280, "height": 960}
-    rope = np.zeros((960, 1280), bool)
-    rope[500, 300:340] = True
-    inst = np.zeros((960, 1280), np.uint16)
-    inst[:, 290:350] = 2
-    np.savez(tmp_path / "000000.npz", rope=rope, instance=inst)
-    stem = tmp_path / "000000"
-    assert on_true_rope(stem, meta, (320.0, 503.0)) is True
-    assert on_true_rope(stem, meta, (700.0, 500.0)) is False          # tape on another tree
-    assert on_true_rope(stem, meta, None) is None
-    assert on_true_rope(stem, {**meta, "roped_tree": None}, (320.0, 500.0)) is None
-    m = eval_metrics([{"gt_dbh_cm": 30.0, "dbh_cm": 31.0, "dbh_sigma_cm": 2.0, "error": None, "on_true_rope": True},
-                      {"gt_dbh_cm": 30.0, "dbh_cm": 45.0, "dbh_sigma_cm": 2.0, "error": None, "on_true_rope": False}])
-    assert m["wrong_rope"] == 1 and m["rope_checked"] == 2

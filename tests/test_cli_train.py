@@ -8,7 +8,7 @@ from monodbh.cli.main import app  # noqa: E402
 
 
 def test_augment_preset_is_checked(tmp_path):
-    r = CliRunner().invoke(app, ["train", "trees", "--out", str(tmp_path / "r"), "--augment", "strong"])
+    r = CliRunner().invoke(app, ["train", "tree", "--out", str(tmp_path / "r"), "--augment", "strong"])
     assert r.exit_code == 2 and "--augment" in r.output
     r = CliRunner().invoke(app, ["train", "segmenter", "--out", str(tmp_path / "r"), "--augment", "wild"])
     assert r.exit_code == 2 and "strong" in r.output
@@ -24,6 +24,15 @@ def test_augment_presets_are_valid_configs():
 
 
 def test_crop_is_for_the_rope_finder_only(tmp_path):
-    r = CliRunner().invoke(app, ["train", "rope", "--out", str(tmp_path / "r"), "--crop", "96"])
+    r = CliRunner().invoke(app, ["train", "rope_verifier", "--out", str(tmp_path / "r"), "--crop", "96"])
     assert r.exit_code == 2 and "--crop" in r.output
+    assert not (tmp_path / "r").exists()
+
+
+def test_kinds_are_the_networks_names(tmp_path):
+    from monodbh.cli.train_cmd import KINDS
+
+    assert KINDS == ("segmenter", "depth", "tree", "stem_base", "rope_verifier", "rope_finder")
+    r = CliRunner().invoke(app, ["train", "ropeseg", "--out", str(tmp_path / "r")])
+    assert r.exit_code == 2 and "rope_finder" in r.output
     assert not (tmp_path / "r").exists()

@@ -115,7 +115,7 @@ def test_export_run_writes_report_and_ships(tmp_path):
     assert rep2["previous"]["metrics"]["roped_iou"] == pytest.approx(rep2["int8"]["metrics"]["roped_iou"])
     assert rep2["shipped"] is not None
     # an impossible tolerance: nothing shipped, user error, report still written
-    from monodbh.models.runtime import MonodbhError
+    from monodbh.calib.errors import MonodbhError
 
     with pytest.raises(MonodbhError, match="nothing shipped"):
         export_run(run, ship=True, n_calib=2, tolerance=-1.0, n_runs=2, models_dir=tmp_path / "m2",
@@ -123,3 +123,22 @@ def test_export_run_writes_report_and_ships(tmp_path):
                    verbose=False)
     assert not (tmp_path / "m2" / "manifest.json").exists()
     assert json.loads((run / "export" / "report.json").read_text())["int8"] is None
+
+
+def test_ship_model_writes_an_old_kind_manifest_under_todays_kinds(tmp_path):
+    """Shipping into a manifest of the networks' old kinds rewrites it under today's (no network
+    listed twice), its error model's networks too."""
+    from monodbh.models.export.cli_impl import ship_model
+
+    models = tmp_path / "models"
+    models.mkdir()
+    old = {"format": 1, "models": {"cden": {"file": "cden_int8.onnx", "sha256": "d", "spec": {"kind": "cden"}},
+                                   "segmenter": {"file": "segmenter_int8.onnx", "sha256": "s"}},
+           "error_model": {"sigma": {"network": 0.3}, "models": {"cden": "d", "segmenter": "s"}}}
+    (models / "manifest.json").write_text(json.dumps(old))
+    (tmp_path / "new.onnx").write_bytes(b"not a real model")
+    ship_model("segmenter", tmp_path / "new.onnx", get_spec("segmenter", "tiny"), {}, models_dir=models)
+    man = json.loads((models / "manifest.json").read_text())
+    assert set(man["models"]) == {"depth", "segmenter"} and man["models"]["depth"]["spec"]["kind"] == "depth"
+    assert man["models"]["segmenter"]["file"] == "segmenter_int8.onnx"
+    assert man["error_model"]["models"] == {"depth": "d", "segmenter": "s"}

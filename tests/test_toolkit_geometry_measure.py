@@ -31,7 +31,7 @@ def test_scale_recovery_and_dbh_on_a_synthetic_scene():
 def test_user_tapped_stem_base_sets_the_scale():
     """A tapped stem base (``--base``) gives the scale by rope-to-base metrology, whatever the
     depth map's scale; a tap above the rope is refused with a flag."""
-    from monodbh.toolkit.gt import true_base_pixel
+    from monodbh.toolkit.evaluation.taps import true_base_pixel
     from monodbh.toolkit.geometry import measure_from_perception
 
     done = 0
@@ -69,7 +69,8 @@ def test_circle_only_checks_the_tangent_estimate_when_the_scale_is_precise():
     are combined."""
     from monodbh.calib import Camera
     from monodbh.models.synthetic import generate_sample
-    from monodbh.toolkit.gt import perception_from_ground_truth, true_base_pixel
+    from monodbh.toolkit.evaluation.ground_truth import perception_from_ground_truth
+    from monodbh.toolkit.evaluation.taps import true_base_pixel
     from monodbh.toolkit.geometry import measure_from_perception
 
     pytest.importorskip("embreex")

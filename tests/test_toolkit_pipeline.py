@@ -3,7 +3,7 @@ import numpy as np
 
 
 def test_unproject_depth_matches_pinhole():
-    from monodbh.toolkit.pipeline import unproject_depth
+    from monodbh.toolkit.clouds import unproject_depth
     K = np.array([[500.0, 0, 160], [0, 480.0, 120], [0, 0, 1]])
     z = np.full((240, 320), 4.0, np.float32)
     z[100:, :] = 7.5

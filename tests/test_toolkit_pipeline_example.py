@@ -7,6 +7,7 @@ import pytest
 
 from monodbh.calib import load_camera
 from monodbh.toolkit import pipeline as pl
+from monodbh.toolkit.config import MeasureConfig
 
 EX = Path(pl.__file__).resolve().parent / "examples"
 
@@ -29,9 +30,8 @@ def test_depth_beside_the_rope_search_changes_nothing(session, monkeypatch):
     """The segmenter and the depth network run on a background thread while the rope is searched:
     the result is the sequential one, and a failure in the thread reaches the caller as an error."""
     cam = load_camera(EX / "cam.yaml")
-    monkeypatch.setattr(pl, "OVERLAP_DEPTH", False)
-    seq = pl.measure_photo(str(EX / "example.jpg"), cam, session=session)
-    monkeypatch.setattr(pl, "OVERLAP_DEPTH", True)
+    sequential = pl.Session(config=MeasureConfig(overlap_networks=False))
+    seq = pl.measure_photo(str(EX / "example.jpg"), cam, session=sequential)
     par = pl.measure_photo(str(EX / "example.jpg"), cam, session=session)
     assert seq.error is None and par.dbh_cm == seq.dbh_cm and par.distance_m == seq.distance_m
     assert par.flags == seq.flags
@@ -53,20 +53,3 @@ def test_pick_away_from_the_rope_is_an_error_not_another_band(session):
     # a tap on the rope measures the same tree
     r = pl.measure_photo(str(EX / "example.jpg"), cam, session=session, pick_xy=(x + 2, y + 1))
     assert r.error is None and np.isclose(r.dbh_cm, ok.dbh_cm, rtol=0.05)
-
-
-def test_reported_pixels_are_the_photos_own_and_round_trip_a_tap():
-    """A 12 MP photo is measured at 1600 px and undistorted: a point the pipeline reports (the
-    rope, a refused band) must come back in the photo's pixels, where ``--pick`` reaches it."""
-    from monodbh.calib import Camera
-
-    W, H = 4000, 3000
-    cam = Camera([[3000.0, 0, 1990.0], [0, 3000.0, 1512.0], [0, 0, 1]], [-0.06, 0.03, 1e-4, -2e-4, 0.0], (W, H))
-    _, cam_work, scale, cam_dist = pl._work_image(np.zeros((H, W, 3), np.uint8), cam)
-    assert max(scale) < 0.5
-    for xy in [(12.0, 20.0), (2000.0, 1500.0), (3985.0, 2990.0), (300.0, 2700.0)]:
-        w = pl._to_work_pixel(xy, scale, cam_dist, cam_work)
-        assert np.allclose(pl._to_photo_pixel(w, scale, cam_dist, cam_work), xy, atol=0.05)
-    # near a corner, dividing by the scale alone (what was reported before) is tens of pixels off
-    w = pl._to_work_pixel((12.0, 20.0), scale, cam_dist, cam_work)
-    assert np.hypot(*(w / np.asarray(scale) - (12.0, 20.0))) > 10

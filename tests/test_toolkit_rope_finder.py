@@ -1,9 +1,13 @@
 """The rope from the rope finder's candidates: acceptance, rivals, a tap, the band it returns."""
 import numpy as np
 
-from monodbh.models.runtime_ropeseg import rope_components
-from monodbh.toolkit.rope_finder import (FINDER_MIN_PEAK, FINDER_PICK_RADIUS_PX, band_shaped, distance_to_segment,
-                                         rope_from_finder)
+from monodbh.models.runtime.rope_finder import rope_components
+from monodbh.toolkit.rope.config import FinderConfig
+from monodbh.toolkit.rope.finder import band_shaped, rope_from_finder
+from monodbh.toolkit.rope.geometry import distance_to_chord
+
+FINDER_MIN_PEAK = FinderConfig().min_peak
+FINDER_PICK_RADIUS_PX = FinderConfig().pick_radius_px
 
 
 def _map(lines, shape=(200, 300), level=6.0):
@@ -42,8 +46,8 @@ def test_a_tap_chooses_among_rivals_and_accepts_fainter_bands():
     miss = rope_from_finder(comps, (400, 600), pick_xy=(300.0, 200.0))
     assert not miss and "picked point" in miss.reason
     c = comps[0]
-    assert distance_to_segment(c, c.center_xy) < 1e-6
-    assert abs(distance_to_segment(c, (c.center_xy[0], c.center_xy[1] + FINDER_PICK_RADIUS_PX)) - FINDER_PICK_RADIUS_PX) < 1e-3
+    assert distance_to_chord(c.polyline, c.center_xy) < 1e-6
+    assert abs(distance_to_chord(c.polyline, (c.center_xy[0], c.center_xy[1] + FINDER_PICK_RADIUS_PX)) - FINDER_PICK_RADIUS_PX) < 1e-3
 
 
 def test_a_knotted_rope_keeps_its_band_and_a_blob_stays_refused():
@@ -69,8 +73,9 @@ def test_a_knotted_rope_keeps_its_band_and_a_blob_stays_refused():
 
 
 def test_finder_check_keeps_supported_ropes_replaces_or_refuses_the_others():
-    from monodbh.toolkit.rope import RopeDetection
-    from monodbh.toolkit.rope_finder import FINDER_SUPPORT_MIN_PEAK, finder_check, finder_support
+    from monodbh.toolkit.rope.detection import RopeDetection
+    from monodbh.toolkit.rope.finder import finder_check, finder_support
+    FINDER_SUPPORT_MIN_PEAK = FinderConfig().support_min_peak
 
     comps = rope_components(_map([(50, 20, 60, None)]))            # the finder's rope at y 100, x 40..120
     on = RopeDetection(True, "", center_xy=(80.0, 101.0), direction=(1.0, 0.0))
@@ -89,7 +94,7 @@ def test_finder_check_keeps_supported_ropes_replaces_or_refuses_the_others():
 def test_components_near_look_at_one_tile_in_photo_pixels():
     import cv2
 
-    from monodbh.models.runtime_ropeseg import RopeFinder
+    from monodbh.models.runtime.rope_finder import RopeFinder
 
     finder = RopeFinder()
     rng = np.random.default_rng(0)
@@ -103,5 +108,18 @@ def test_components_near_look_at_one_tile_in_photo_pixels():
         assert 740 - T / 2 - 2 <= c.center_xy[0] <= 740 + T / 2 + 2 and 602 - T / 2 - 2 <= c.center_xy[1] <= 602 + T / 2 + 2
         assert np.allclose(np.mean(c.polyline, 0), c.center_xy, atol=0.6 * c.length_px + 2)
     # the band the whole-photo map finds at the rope is found by the one tile too, at the same place
-    at_rope = [c for c in whole if distance_to_segment(c, (740.0, 602.0)) < 6]
-    assert at_rope and any(distance_to_segment(c, (740.0, 602.0)) < 6 for c in near)
+    at_rope = [c for c in whole if distance_to_chord(c.polyline, (740.0, 602.0)) < 6]
+    assert at_rope and any(distance_to_chord(c.polyline, (740.0, 602.0)) < 6 for c in near)
+
+
+def test_a_different_config_changes_the_finders_acceptance():
+    from dataclasses import replace
+
+    comps = rope_components(_map([(50, 20, 60, None)]))
+    assert rope_from_finder(comps, (400, 600))
+    assert not rope_from_finder(comps, (400, 600), config=replace(FinderConfig(), min_peak=7.0))
+    assert not rope_from_finder(comps, (400, 600), config=replace(FinderConfig(), min_length_px=1000.0))
+    # a tap 20 px off the band: outside the default pick radius, inside a wider one
+    tap = (80.0, 121.0)
+    assert not rope_from_finder(comps, (400, 600), pick_xy=tap)
+    assert rope_from_finder(comps, (400, 600), pick_xy=tap, config=replace(FinderConfig(), pick_radius_px=25.0))

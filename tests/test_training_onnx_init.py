@@ -29,7 +29,7 @@ def _outputs(m, feeds):
     return out if isinstance(out, (tuple, list)) else (out,)
 
 
-@pytest.mark.parametrize("kind", ["treenet", "cden"])
+@pytest.mark.parametrize("kind", ["tree", "depth"])
 def test_exact_recovery_from_fp32_onnx(kind, tmp_path):
     """BatchNorm folds (U-Net) and gathered relative-position tables (Swin) come back exactly."""
     src = _trained_like(kind)
@@ -42,7 +42,7 @@ def test_exact_recovery_from_fp32_onnx(kind, tmp_path):
     feeds = random_feeds(src.spec, seed=3)
     for a, b in zip(_outputs(src, feeds), _outputs(dst, feeds)):
         assert torch.allclose(a, b, atol=1e-4, rtol=1e-3), (kind, float((a - b).abs().max()))
-    if kind == "treenet":
+    if kind == "tree":
         assert info["folded_bn"], "the U-Net's BatchNorms are folded into its convs at export"
     assert fidelity(dst, path) < 1e-4
 
@@ -59,17 +59,17 @@ def test_load_onnx_into_segmenter_fits_folded_queries(tmp_path):
 
 
 def test_wrong_model_is_refused(tmp_path):
-    src = _trained_like("treenet")
+    src = _trained_like("tree")
     path = tmp_path / "t.onnx"
     export_onnx(src, src.spec, path, check=False)
     with pytest.raises(ValueError):
-        load_onnx_into(build("cden", "tiny"), path, fit_steps=0)
+        load_onnx_into(build("depth", "tiny"), path, fit_steps=0)
 
 
 def test_int8_weights_dequantised(tmp_path):
     from monodbh.models.export.quantize import DEFAULT_RECIPES, quantize_int8
 
-    src = _trained_like("treenet")
+    src = _trained_like("tree")
     fp32 = tmp_path / "t.onnx"
     export_onnx(src, src.spec, fp32, check=False)
     int8 = tmp_path / "t_int8.onnx"
@@ -84,7 +84,7 @@ def test_int8_weights_dequantised(tmp_path):
 
 
 def test_frozen_bn_stays_in_eval():
-    m = build("treenet", "tiny")
+    m = build("tree", "tiny")
     n = freeze_bn(m)
     m.train()
     bns = [x for x in m.modules() if isinstance(x, torch.nn.BatchNorm2d)]
@@ -93,21 +93,21 @@ def test_frozen_bn_stays_in_eval():
 
 
 def test_train_warm_start_from_onnx_and_resume(tmp_path):
-    """``dbh train trees --init model.onnx``: weights from the file, BatchNorms stay frozen on resume."""
+    """``dbh train tree --init model.onnx``: weights from the file, BatchNorms stay frozen on resume."""
     import json
 
-    from test_models_treenet import fake_tree_sample
+    from test_models_tree import fake_tree_sample
 
-    from monodbh.models.training.trees import train_trees
+    from monodbh.models.training.tree import train_tree
 
-    src = _trained_like("treenet")
-    path = tmp_path / "treenet_fp32.onnx"
+    src = _trained_like("tree")
+    path = tmp_path / "tree_fp32.onnx"
     export_onnx(src, src.spec, path, check=False)
     data = [fake_tree_sample(i) for i in range(3)]
     opts = dict(size="tiny", batch_size=4, crops_per_sample=2, val_n=2, threads=1, warmup_steps=1,
                 mode="sup", verbose=False)
     run = tmp_path / "run"
-    train_trees(run, 3, data, stop_at=1, init_weights=str(path), **opts)
+    train_tree(run, 3, data, stop_at=1, init_weights=str(path), **opts)
     cfg = json.loads((run / "config.json").read_text())
     assert cfg["init_weights"]["file"] == str(path) and cfg["init_weights"]["frozen_bn"]
     assert cfg["init_weights"]["rel_l2"] < 1e-3
@@ -115,7 +115,7 @@ def test_train_warm_start_from_onnx_and_resume(tmp_path):
     # frozen BatchNorm: running statistics untouched by the training step (identity + bias)
     rv = [v for k, v in ck.items() if k.endswith("running_var")]
     assert rv and all(torch.allclose(v, torch.full_like(v, 1 - 1e-5)) for v in rv)
-    r = train_trees(run, 3, data, resume=True, verbose=False)
+    r = train_tree(run, 3, data, resume=True, verbose=False)
     assert r["step"] == 3
     ck = torch.load(run / "checkpoint.pt", weights_only=False)["model"]
     assert all(torch.allclose(v, torch.full_like(v, 1 - 1e-5)) for k, v in ck.items() if k.endswith("running_var"))

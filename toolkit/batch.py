@@ -2,14 +2,16 @@
 
 The measure function is named by a ``"module:attribute"`` spec (default
 :data:`DEFAULT_MEASURE`, the pipeline's ``measure_photo``) so worker processes can import it and
-``dbh bench`` can time any function with the same signature::
+``dbh bench`` (``monodbh.toolkit.evaluation.speed_bench``) can time any function with the same
+signature::
 
     measure(path: str, camera, *, pick_xy=None, want_cloud=False, want_debug=False,
-            session=None[, gt=dict][, base_xy=(x, y)]) -> MeasureResult
+            session=None[, base_xy=(x, y)][, rope_diameter_m=float]) -> MeasureResult
 
 ``session`` comes from the session factory spec (default :data:`DEFAULT_SESSION`, called as
-``factory(models_dir=...)`` once per process); ``gt`` is passed only for ``dbh eval
---gt-perception``, ``base_xy`` only when the user gave the stem base (``--base``).
+``factory(models_dir=...)`` once per process); ``base_xy`` is passed only when the user gave
+the stem base (``--base``), ``rope_diameter_m`` only when the user gave the rope's diameter
+(``--rope-mm``).
 
 Guarantees of :func:`run_job` / :func:`iter_results`: one :class:`MeasureResult` per photo, in
 input order, never an exception for a bad photo: a :class:`~monodbh.calib.errors.MonodbhError`
@@ -20,7 +22,7 @@ function or session themselves (import error, models missing) is raised once as
 
 :class:`ResultWriter` writes the rows as they come: JSON lines on a stream (flushed per line),
 a CSV appended and flushed per photo, and with an output folder ``results.jsonl`` and
-``summary.json`` (rewritten atomically, temp file + ``os.replace``).
+``summary.json`` (rewritten atomically, :mod:`monodbh.toolkit.outputs.atomic`).
 """
 from __future__ import annotations
 
@@ -31,7 +33,6 @@ import json
 import math
 import os
 import statistics
-import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -39,12 +40,13 @@ from typing import Any, Callable, Iterable, Iterator, Optional, Sequence
 
 from monodbh.calib.errors import MonodbhError
 
+from .outputs.atomic import atomic_write_text
 from .result import RESULT_FIELDS, MeasureResult
 
 __all__ = ["Backend", "Job", "BatchError", "ResultWriter", "DEFAULT_MEASURE", "DEFAULT_SESSION",
            "DEFAULT_RECONSTRUCT", "PHOTO_EXTENSIONS", "load_object", "run_job", "iter_results",
            "error_result", "normalise_result", "expand_photos", "unique_stems", "csv_row",
-           "atomic_write_text", "one_line", "summarise", "bench_child", "BENCH_CHILD_CODE", "BENCH_MARK"]
+           "one_line", "summarise", "json_default"]
 
 DEFAULT_MEASURE = "monodbh.toolkit.pipeline:measure_photo"
 DEFAULT_RECONSTRUCT = "monodbh.toolkit.pipeline:reconstruct_photo"
@@ -164,9 +166,6 @@ class Job:
         ``debug['tree_cloud']``) there.
     out_stem : str or None
         File stem for the outputs (default: the photo's stem).
-    gt : (str, int) or None
-        ``(synth folder, sample index)``: read the sample with
-        ``monodbh.models.synthetic.io.read_sample`` and pass it as ``gt=``.
     want_cloud : bool
         Ask the pipeline for the tree's cloud (implied by ``out_dir``).
     """
@@ -178,7 +177,6 @@ class Job:
     rope_diameter_m: Optional[float] = None
     out_dir: Optional[str] = None
     out_stem: Optional[str] = None
-    gt: Optional[tuple[str, int]] = None
     want_cloud: bool = False
 
 
@@ -221,7 +219,7 @@ def normalise_result(res: Any, photo: str) -> MeasureResult:
 
 def _write_outputs(job: Job, res: MeasureResult) -> None:
     """Overlay PNG and tree PLY of one photo; failures become flags, never exceptions."""
-    from .overlay import write_overlay
+    from .outputs.overlay import write_overlay
 
     out = Path(job.out_dir)
     stem = job.out_stem or Path(job.photo).stem
@@ -234,7 +232,7 @@ def _write_outputs(job: Job, res: MeasureResult) -> None:
     cloud = (res.debug or {}).get("tree_cloud")
     if cloud is not None and len(cloud):
         try:
-            from .cloud_io import write_cloud
+            from .outputs.cloud_io import write_cloud
 
             write_cloud(out / f"{stem}_tree.ply", cloud)
         except Exception:
@@ -262,11 +260,6 @@ def run_job(job: Job, measure: Callable[..., Any], session: Any = None, *,
             kw["base_xy"] = tuple(job.base_xy)
         if job.rope_diameter_m is not None:
             kw["rope_diameter_m"] = float(job.rope_diameter_m)
-        if job.gt is not None:
-            from monodbh.models.synthetic.io import read_sample
-
-            kw["gt"] = read_sample(job.gt[0], int(job.gt[1]))
-            t0 = time.perf_counter()  # time the measurement, not the ground-truth reading
         res = normalise_result(measure(job.photo, job.camera, **kw), job.photo)
     except (KeyboardInterrupt, SystemExit):
         raise
@@ -389,24 +382,6 @@ def unique_stems(photos: Sequence[str]) -> list[str]:
 
 
 # -- outputs -------------------------------------------------------------------------------------
-def atomic_write_text(path: str | os.PathLike, text: str) -> Path:
-    """Write ``text`` to ``path`` via a temporary file in the same folder and ``os.replace``."""
-    p = Path(path)
-    p.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{p.name}.", suffix=".tmp", dir=p.parent)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8", newline="") as f:
-            f.write(text)
-        os.replace(tmp, p)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except OSError:
-            pass
-        raise
-    return p
-
-
 def csv_row(d: dict) -> list[str]:
     """CSV cells of a JSON dict: None -> empty, lists/dicts -> compact JSON, numbers as text."""
     cells = []
@@ -422,10 +397,11 @@ def csv_row(d: dict) -> list[str]:
 
 
 def _json_line(d: dict) -> str:
-    return json.dumps(d, ensure_ascii=False, allow_nan=False, default=_json_default)
+    return json.dumps(d, ensure_ascii=False, allow_nan=False, default=json_default)
 
 
-def _json_default(o: Any) -> Any:
+def json_default(o: Any) -> Any:
+    """``json.dumps(..., default=json_default)``: numpy scalars and arrays as Python numbers and lists."""
     try:
         import numpy as np
 
@@ -527,7 +503,7 @@ class ResultWriter:
         if self.out_dir:
             atomic_write_text(self.out_dir / "results.jsonl", "".join(s + "\n" for s in self._lines))
             atomic_write_text(self.out_dir / "summary.json",
-                              json.dumps(summary, indent=1, ensure_ascii=False, default=_json_default) + "\n")
+                              json.dumps(summary, indent=1, ensure_ascii=False, default=json_default) + "\n")
         return summary
 
     def __enter__(self) -> "ResultWriter":
@@ -536,64 +512,3 @@ class ResultWriter:
     def __exit__(self, *exc) -> None:
         if self._csv_file is not None and not self._csv_file.closed:
             self._csv_file.close()
-
-
-# -- benchmark child process (``dbh bench``) -------------------------------------------------------
-BENCH_MARK = "MONODBH_BENCH "
-
-#: Code run by ``python -c`` in the fresh benchmark process; ``t0`` is taken before any import.
-BENCH_CHILD_CODE = ("import time; t0 = time.perf_counter(); w0 = time.time(); import sys; "
-                    "from monodbh.toolkit.batch import bench_child; sys.exit(bench_child(t0, w0, sys.argv[1]))")
-
-
-def _maxrss_mib() -> float:
-    import resource
-    import sys
-
-    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    return rss / 2**20 if sys.platform == "darwin" else rss / 1024.0
-
-
-def bench_child(t0: float, wall0: float, args_json: str) -> int:
-    """Body of the benchmark process: time imports, session creation and repeated measures.
-
-    Prints one line ``MONODBH_BENCH {json}`` on stdout with ``import_s``, ``session_s``,
-    ``ready_wall`` (``time.time()`` when ready), ``rss_startup_mib``, ``runs`` (list of
-    ``{"wall_ms", "timings_ms", "error"}``, warm-up runs first) and ``rss_peak_mib``. Returns the
-    exit status (1 on a setup error, reported as ``{"error": ...}``).
-    """
-    import sys
-
-    args = json.loads(args_json)
-
-    def emit(d: dict) -> None:
-        sys.stdout.write(BENCH_MARK + json.dumps(d, default=_json_default) + "\n")
-        sys.stdout.flush()
-
-    try:
-        backend = Backend(measure=args["measure"], session=args.get("session"),
-                          models_dir=args.get("models_dir"))
-        fn = backend.function()
-        t_import = time.perf_counter()
-        session = backend.new_session()
-        t_session = time.perf_counter()
-        ready_wall = time.time()
-        rss_startup = _maxrss_mib()
-        from monodbh.calib import load_camera
-
-        camera = load_camera(args["calib"])
-    except Exception as exc:
-        emit({"error": str(exc) if isinstance(exc, MonodbhError)
-              else f"internal error: {type(exc).__name__}: {one_line(exc)}"})
-        return 1
-    runs = []
-    pick = tuple(args["pick_xy"]) if args.get("pick_xy") else None
-    for _ in range(int(args.get("warmup", 1)) + int(args.get("repeat", 5))):
-        t = time.perf_counter()
-        res = run_job(Job(0, args["photo"], camera, pick_xy=pick), fn, session)
-        runs.append({"wall_ms": (time.perf_counter() - t) * 1000.0, "timings_ms": res.timings_ms,
-                     "error": res.error})
-    emit({"import_s": t_import - t0, "session_s": t_session - t_import, "start_wall": wall0,
-          "ready_wall": ready_wall, "rss_startup_mib": rss_startup, "runs": runs,
-          "rss_peak_mib": _maxrss_mib()})
-    return 0

@@ -18,6 +18,7 @@ from typing import Any, Sequence
 from monodbh.models.export.onnx_io import export_onnx, make_session, run_session
 from monodbh.models.export.quantize import DEFAULT_RECIPES, QuantRecipe, search_int8
 from monodbh.models.modeling.registry import ModelSpec
+from monodbh.models.runtime.common import MonodbhError, load_manifest
 
 __all__ = ["export_run", "ship_model", "manifest_entry", "sha256_file", "MODELS_DIR",
            "MANIFEST_NAME"]
@@ -28,10 +29,8 @@ MANIFEST_NAME = "manifest.json"
 
 
 def _error(msg: str) -> Exception:
-    try:
-        from monodbh.calib.errors import MonodbhError
-    except ImportError:  # pragma: no cover - until calib.errors exists
-        from monodbh.models.runtime import MonodbhError
+    from monodbh.calib.errors import MonodbhError
+
     return MonodbhError(msg)
 
 
@@ -60,11 +59,11 @@ def _shipped_spec(spec: ModelSpec, shipped_path: Path) -> ModelSpec:
     as the tree network's ``thickness``), so that it is scored by its own conventions on the same
     data; ``spec`` when the manifest has no usable entry."""
     try:
-        entry = json.loads((shipped_path.parent / "manifest.json").read_text())["models"][spec.kind]
+        entry = load_manifest(shipped_path.parent / "manifest.json")["models"][spec.kind]
         old = ModelSpec.from_dict(entry["spec"])
-    except (OSError, KeyError, ValueError, TypeError):
+    except (OSError, KeyError, ValueError, TypeError, MonodbhError):
         return spec
-    if spec.kind == "treenet" and "thickness" not in old.extra:
+    if spec.kind == "tree" and "thickness" not in old.extra:
         old = dataclasses.replace(old, extra={**old.extra, "thickness": "z"})   # runs that measured the thickness in z
     return old
 
@@ -109,7 +108,7 @@ def ship_model(kind: str, int8_path: str | os.PathLike, spec: ModelSpec, report:
     shutil.copyfile(int8_path, tmp)
     os.replace(tmp, models_dir / name)
     man_path = models_dir / MANIFEST_NAME
-    manifest = json.loads(man_path.read_text()) if man_path.exists() else {}
+    manifest = load_manifest(man_path)     # (a manifest of the networks' old kinds: under today's)
     manifest.setdefault("format", 1)
     manifest.setdefault("models", {})
     entry = manifest_entry(spec, name, sha256_file(models_dir / name), report)
@@ -169,7 +168,7 @@ def export_run(run_dir: str | os.PathLike, ship: bool = False, n_calib: int = 32
     model, config, ckpt = load_run_model(run.path)
     spec: ModelSpec = model.spec
     kind = spec.kind
-    if kind == "treenet" and "thickness" in spec.extra:
+    if kind == "tree" and "thickness" in spec.extra:
         # how the run's targets measured the thickness (older runs: in z)
         spec = dataclasses.replace(spec, extra={**spec.extra,
                                                 "thickness": config.get("train", {}).get("thickness", "z")})

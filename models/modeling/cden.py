@@ -238,7 +238,7 @@ def cden_spec(size: str) -> ModelSpec:
     cfg = CDEN_CONFIGS[size]
     s = cfg.img
     return ModelSpec(
-        kind="cden", size=size,
+        kind="depth", size=size,
         inputs=(TensorSpec("image", (1, 3, s, s), description="ImageNet-normalised RGB, letterboxed"),
                 TensorSpec("mask", (1, 1, s, s), description="union of tree masks, 0/1, letterboxed")),
         outputs=(TensorSpec("depth_code", (1, 1, s, s),
@@ -248,7 +248,7 @@ def cden_spec(size: str) -> ModelSpec:
         metric="delta1", higher_is_better=True, extra=_depth_extra(cfg))
 
 
-@register("cden", spec=cden_spec)
+@register("depth", spec=cden_spec)
 def build_cden(size: str) -> CDENGenerator:
     """Fresh CDEN generator at ``size`` (``"tiny"``, ``"base"``)."""
     return CDENGenerator(CDEN_CONFIGS[size])

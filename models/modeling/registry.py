@@ -1,6 +1,6 @@
 """Registry of network kinds and their I/O contracts (the single source of truth).
 
-Every trainable network kind (``"segmenter"``, ``"cden"``, ``"treenet"``) registers
+Every trainable network kind (``"segmenter"``, ``"depth"``, ``"tree"``) registers
 
 * a **builder** ``builder(size) -> nn.Module`` (sizes ``"tiny"`` for tests, ``"base"`` for shipping);
 * a **spec** ``spec(size) -> ModelSpec``: ONNX input/output names and shapes, preprocessing
@@ -17,11 +17,11 @@ Adding a kind (e.g. in ``modeling/cden.py``)::
 
     def cden_spec(size: str) -> ModelSpec: ...
 
-    @register("cden", spec=cden_spec)
+    @register("depth", spec=cden_spec)
     def build_cden(size: str) -> nn.Module: ...
 
-and add ``"cden": "monodbh.models.modeling.cden"`` to :data:`KIND_MODULES` (already done for the
-three planned kinds) so that ``build("cden", "tiny")`` imports the module on demand.
+and add ``"depth": "monodbh.models.modeling.cden"`` to :data:`KIND_MODULES` (already done for the
+three planned kinds) so that ``build("depth", "tiny")`` imports the module on demand.
 
 Conventions
 -----------
@@ -48,7 +48,7 @@ __all__ = [
 
 IMAGENET_MEAN: tuple[float, float, float] = (0.485, 0.456, 0.406)
 IMAGENET_STD: tuple[float, float, float] = (0.229, 0.224, 0.225)
-SIZES: tuple[str, ...] = ("tiny", "base", "wide", "base384")  # "wide": cden/treenet/ropeseg; "base384": segmenter only
+SIZES: tuple[str, ...] = ("tiny", "base", "wide", "base384")  # "wide": depth/tree/rope_finder; "base384": segmenter only
 
 
 @dataclass(frozen=True)
@@ -179,11 +179,11 @@ SPECS: dict[str, Callable[[str], ModelSpec]] = {}
 #: kind -> module that registers it (imported lazily by :func:`build` / :func:`get_spec`).
 KIND_MODULES: dict[str, str] = {
     "segmenter": "monodbh.models.modeling.segmenter",
-    "cden": "monodbh.models.modeling.cden",
-    "treenet": "monodbh.models.modeling.treenet",
-    "basenet": "monodbh.models.modeling.basenet",
-    "ropenet": "monodbh.models.modeling.ropenet",
-    "ropeseg": "monodbh.models.modeling.ropeseg",
+    "depth": "monodbh.models.modeling.cden",
+    "tree": "monodbh.models.modeling.tree",
+    "stem_base": "monodbh.models.modeling.stem_base",
+    "rope_verifier": "monodbh.models.modeling.rope_verifier",
+    "rope_finder": "monodbh.models.modeling.rope_finder",
 }
 
 

@@ -2,9 +2,9 @@
 
 ``common``: run folders, resumable loop, data sources, augmentation, export hooks.
 ``segmenter``: :func:`~monodbh.models.training.segmenter.train_segmenter`.
-``depth`` / ``trees``: CDEN and tree-silhouette networks; ``basenet``: the stem-base finder;
-``ropenet``: the rope-band verifier; ``ropeseg`` (+ ``ropeseg_bank``, its example tiles): the
-mask-free rope finder.
+``depth`` / ``tree``: the CDEN depth and tree-silhouette networks; ``stem_base``: the stem-base
+finder; ``rope_verifier``: the rope-band verifier; ``rope_finder`` (+ ``rope_finder_bank``, its
+example tiles): the mask-free rope finder.
 Submodules are imported explicitly (this package imports nothing heavy at import time).
 """
 __all__: list[str] = []

@@ -1,4 +1,4 @@
-"""Shared training harness for all network kinds (segmenter, cden, treenet).
+"""Shared training harness for all network kinds (segmenter, depth, tree, stem_base, rope_verifier, rope_finder).
 
 What is here
 ------------
@@ -199,9 +199,14 @@ def pack_weights(run_dir: str | os.PathLike, out: str | os.PathLike) -> dict[str
 
 
 def load_packed_weights(path: str | os.PathLike, kind: str, size: str) -> dict[str, Any]:
-    """Read a :func:`pack_weights` file, checking kind and size; weights back to float32."""
+    """Read a :func:`pack_weights` file, checking kind and size; weights back to float32.
+
+    A file packed under a network's old kind (e.g. ``treenet``) counts as today's (``tree``).
+    """
+    from monodbh.models.runtime.common import canonical_kind
+
     w = torch.load(path, map_location="cpu", weights_only=True)
-    if w.get("kind") != kind or w.get("size") != size:
+    if canonical_kind(w.get("kind")) != kind or w.get("size") != size:
         raise ValueError(f"{path}: weights are {w.get('kind')}/{w.get('size')}, the run is {kind}/{size}")
     w["model"] = {k: (v.float() if v.is_floating_point() else v) for k, v in w["model"].items()}
     return w
@@ -252,6 +257,8 @@ def _jsonable(x: Any) -> Any:
 def load_run_model(run_dir: str | os.PathLike, map_location: str = "cpu"):
     """Build the run's model (registry kind/size from config.json) and load checkpoint weights.
 
+    A run made under a network's old kind (e.g. ``basenet``) is built as today's (``stem_base``).
+
     Returns
     -------
     (model, config, checkpoint)
@@ -266,7 +273,9 @@ def load_run_model(run_dir: str | os.PathLike, map_location: str = "cpu"):
     ckpt = run.load_checkpoint(map_location)
     if ckpt is None:
         raise FileNotFoundError(f"{run.checkpoint_path}: no checkpoint")
-    model = build(config["kind"], config["size"])
+    from monodbh.models.runtime.common import canonical_kind
+
+    model = build(canonical_kind(config["kind"]), config["size"])
     model.load_state_dict(ckpt["model"])
     model.eval()
     return model, config, ckpt
@@ -615,7 +624,7 @@ class GeneratorSource(DataSource):
 
 def config_from_dict(cls: type, d: dict[str, Any], what: str) -> Any:
     """``cls(**d)`` for a training-config dataclass, refusing unknown keys (ValueError naming
-    ``what``, e.g. ``"basenet"``)."""
+    ``what``, e.g. ``"stem_base"``)."""
     unknown = set(d) - {f.name for f in fields(cls)}
     if unknown:
         raise ValueError(f"unknown {what} training options {sorted(unknown)}")
@@ -624,7 +633,7 @@ def config_from_dict(cls: type, d: dict[str, Any], what: str) -> Any:
 
 class BankSource(DataSource):
     """Examples already cut into ``.npz`` banks (the rope verifier's, see
-    ``monodbh.toolkit.fit_rope_stem.collect_patches``), concatenated in listed order.
+    ``monodbh.toolkit.evaluation.fit_rope_stem.collect_patches``), concatenated in listed order.
 
     ``arrays`` holds every array of the banks (first axis: the example); ``n`` counts examples.
     """
@@ -910,11 +919,11 @@ def augment(sample: dict[str, Any], rng: np.random.Generator, cfg: AugmentConfig
 #: kind -> training module that registers its hooks (imported lazily).
 TRAINING_MODULES: dict[str, str] = {
     "segmenter": "monodbh.models.training.segmenter",
-    "cden": "monodbh.models.training.depth",
-    "treenet": "monodbh.models.training.trees",
-    "basenet": "monodbh.models.training.basenet",
-    "ropenet": "monodbh.models.training.ropenet",
-    "ropeseg": "monodbh.models.training.ropeseg",
+    "depth": "monodbh.models.training.depth",
+    "tree": "monodbh.models.training.tree",
+    "stem_base": "monodbh.models.training.stem_base",
+    "rope_verifier": "monodbh.models.training.rope_verifier",
+    "rope_finder": "monodbh.models.training.rope_finder",
 }
 _CALIB_HOOKS: dict[str, Callable[..., list[dict[str, np.ndarray]]]] = {}
 _EVAL_HOOKS: dict[str, Callable[..., dict[str, float]]] = {}

@@ -2,8 +2,8 @@
 
 Data: synthetic samples (``dbh synth`` folders or the on-the-fly generator, rendered without
 lens distortion), letterboxed to the network input exactly like
-:class:`monodbh.models.runtime_gan.DepthPredictor` does (:func:`depth_example`).  Target: the
-canonical log-depth code of the metric z-depth (:func:`monodbh.models.runtime_gan.metric_to_depth_code`
+:class:`monodbh.models.runtime.depth.DepthPredictor` does (:func:`depth_example`).  Target: the
+canonical log-depth code of the metric z-depth (:func:`monodbh.models.runtime.depth.metric_to_depth_code`
 with the sample's focal length at network resolution); sky (depth 0) and letterbox padding are
 masked out of every loss.
 
@@ -30,14 +30,15 @@ from torch.nn import functional as F
 
 from monodbh.models.modeling.cden import (_LN_RANGE, build_cden_discriminator)
 from monodbh.models.modeling.registry import build, get_spec
-from monodbh.models.runtime_gan import (letterbox, letterbox_geometry, metric_to_depth_code,
+from monodbh.models.runtime.depth import (letterbox, letterbox_geometry, metric_to_depth_code,
                                         normalize_rgb, depth_code_to_metric)
 from monodbh.models.training.common import (AugmentConfig, DataSource, GeneratorSource,
                                             augment, batch_indices, make_source,
                                             register_calibration, register_eval, sample_rng,
                                             select_device, train_loop)
+from monodbh.models.training.depth_metrics import depth_metrics
 
-__all__ = ["DepthTrainConfig", "undistort_sample", "depth_example", "depth_metrics",
+__all__ = ["DepthTrainConfig", "undistort_sample", "depth_example",
            "depth_losses", "silog_loss", "gradient_loss", "train_depth", "default_source",
            "pick_indices", "calibration_feeds", "evaluate"]
 
@@ -296,33 +297,6 @@ def depth_losses(t: torch.Tensor, batch: dict[str, torch.Tensor], cfg: DepthTrai
     return out
 
 
-def depth_metrics(pred: np.ndarray, gt: np.ndarray, valid: np.ndarray | None = None,
-                  max_depth: float = 80.0) -> dict[str, float]:
-    """Standard depth metrics on one image (metric and median-scaled, prefix ``ms_``).
-
-    ``pred``, ``gt`` metres, any equal shapes; pixels with ``0 < gt <= max_depth`` (and ``valid``).
-    Returns ``{}`` if no pixel is valid.
-    """
-    m = (gt > 0) & (gt <= max_depth)
-    if valid is not None:
-        m &= valid
-    if not m.any():
-        return {}
-    p = np.maximum(pred[m].astype(np.float64), 1e-3)
-    g = gt[m].astype(np.float64)
-    out = {}
-    for prefix, q in (("", p), ("ms_", p * (np.median(g) / np.median(p)))):
-        ratio = np.maximum(q / g, g / q)
-        out[prefix + "absrel"] = float(np.mean(np.abs(q - g) / g))
-        out[prefix + "sqrel"] = float(np.mean((q - g) ** 2 / g))
-        out[prefix + "rmse"] = float(np.sqrt(np.mean((q - g) ** 2)))
-        out[prefix + "rmse_log"] = float(np.sqrt(np.mean((np.log(q) - np.log(g)) ** 2)))
-        out[prefix + "log10"] = float(np.mean(np.abs(np.log10(q) - np.log10(g))))
-        for k in (1, 2, 3):
-            out[prefix + f"delta{k}"] = float(np.mean(ratio < 1.25 ** k))
-    return out
-
-
 def _mean_metrics(ms: list[dict[str, float]]) -> dict[str, float]:
     ms = [m for m in ms if m]
     if not ms:
@@ -392,7 +366,7 @@ def train_depth(run_dir: str, steps: int = 20000, data: Any = None, resume: bool
         vsrc = src
         val_idx = ([(src.n - 1 - i) % src.n for i in range(min(cfg.val_n, src.n))] if src.n
                    else list(range(10**9, 10**9 + cfg.val_n)))
-    gen = build("cden", cfg.size).to(device)
+    gen = build("depth", cfg.size).to(device)
     S = gen.spec.inputs[0].shape[-1]
     disc = build_cden_discriminator(cfg.size).to(device) if cfg.lambda_gan > 0 else None
     opt_g = torch.optim.AdamW(gen.parameters(), lr=cfg.lr_g, betas=(0.9, 0.999),
@@ -464,7 +438,7 @@ def train_depth(run_dir: str, steps: int = 20000, data: Any = None, resume: bool
         res["val_l1"] = float(_masked_mean((gen(b["image"], b["mask"]) - b["code"]).abs(), b["valid"]))
         return res
 
-    config = {"kind": "cden", "size": cfg.size, "seed": cfg.seed, "batch_size": cfg.batch_size,
+    config = {"kind": "depth", "size": cfg.size, "seed": cfg.seed, "batch_size": cfg.batch_size,
               "train": asdict(cfg), "data": src.config(),
               "val_data": vsrc.config() if vsrc is not src else {"type": "same", "indices": val_idx},
               "input_size": S}
@@ -496,7 +470,7 @@ def pick_indices(src: DataSource, n: int, seed: int) -> list[int]:
     return [seed * 100_003 % 2**30 + i for i in range(n)]
 
 
-@register_calibration("cden")
+@register_calibration("depth")
 def calibration_feeds(n: int, seed: int, spec: Any, data: DataSource | None = None
                       ) -> list[dict[str, np.ndarray]]:
     """``n`` runtime-preprocessed input feeds (``image``, ``mask``) for int8 calibration."""
@@ -509,7 +483,7 @@ def calibration_feeds(n: int, seed: int, spec: Any, data: DataSource | None = No
     return feeds
 
 
-@register_eval("cden")
+@register_eval("depth")
 def evaluate(predict: Callable[[dict[str, np.ndarray]], dict[str, np.ndarray]], n: int, seed: int,
              spec: Any, data: DataSource | None = None) -> dict[str, float]:
     """Depth metrics (mean over ``n`` samples) of a predictor; includes ``delta1`` (spec metric)."""

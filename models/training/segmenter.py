@@ -12,7 +12,7 @@
 * Metrics (:func:`evaluate_segmenter`): roped-tree instance IoU (GT ``instance ==
   meta['roped_tree']`` vs best predicted tree segment) and panoptic quality (PQ, SQ, RQ) for
   things (tree) and stuff, computed on the *runtime* inference path (``preprocess_image`` ->
-  network -> :func:`monodbh.models.runtime.panoptic_merge` at the photo's resolution), so
+  network -> :func:`monodbh.models.runtime.segmenter.panoptic_merge` at the photo's resolution), so
   validation, export gating and the shipped model agree.
 * :func:`train_segmenter` - the resumable training loop (``training.common.train_loop``).
 * Export hooks: calibration inputs and the task metric (``roped_iou``) for ``dbh export``.
@@ -32,7 +32,8 @@ from torch.nn import functional as F
 
 from monodbh.models.modeling.registry import ModelSpec, build, get_spec
 from monodbh.models.modeling.segmenter import CLASSES, TREE_CLASS
-from monodbh.models.runtime import panoptic_merge, preprocess_image
+from monodbh.models.runtime.common import preprocess_image
+from monodbh.models.runtime.segmenter import panoptic_merge
 from monodbh.models.training.common import (AugmentConfig, DataSource, GeneratorSource,
                                             augment, batch_indices, make_source,
                                             register_calibration, register_eval, sample_rng,
@@ -327,7 +328,7 @@ def evaluate_segmenter(predict: Callable[[dict[str, np.ndarray]], dict[str, np.n
 
     GT segments smaller than ``min_area_frac`` of the image (1e-3 = 64 px at 256x256, the
     training threshold for trees) are void. Each sample's ``rgb`` is preprocessed like the runtime, ``predict`` gives
-    ``class_logits``/``mask_logits``, :func:`~monodbh.models.runtime.panoptic_merge` produces
+    ``class_logits``/``mask_logits``, :func:`~monodbh.models.runtime.segmenter.panoptic_merge` produces
     segments at the sample's resolution, compared with ``semantic``/``instance``.
 
     Returns

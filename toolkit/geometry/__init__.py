@@ -1,7 +1,7 @@
 """The measuring path's geometry: from :class:`Perception` to a metric DBH (:func:`measure_from_perception`).
 
 Imported by the measuring pipeline (:mod:`monodbh.toolkit.pipeline`), ground-truth perception
-(:mod:`monodbh.toolkit.gt`) and evaluation; imports numpy, cv2, the rope package's red-ness map
+(:mod:`monodbh.toolkit.evaluation.ground_truth`) and evaluation; imports numpy, cv2, the rope package's red-ness map
 and :mod:`monodbh.toolkit.result` (scipy and scikit-image inside the circle fit). One module per
 stage: :mod:`.perception` (the input), :mod:`.config` (every tuning parameter,
 :class:`GeometryConfig`), :mod:`.fits` (rays, planes, metrology, circle), :mod:`.edges` (trunk

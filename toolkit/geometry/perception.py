@@ -1,7 +1,7 @@
 """The geometry's input: :class:`Perception`, everything the geometry needs in one image frame.
 
 Built by the measuring pipeline (:mod:`monodbh.toolkit.pipeline`, network perception) and by
-ground-truth perception (:mod:`monodbh.toolkit.gt`); read by every stage of
+ground-truth perception (:mod:`monodbh.toolkit.evaluation.ground_truth`); read by every stage of
 :mod:`monodbh.toolkit.geometry`. Plain data: it imports numpy only.
 """
 from __future__ import annotations

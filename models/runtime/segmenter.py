@@ -1,0 +1,244 @@
+"""The segmenter's runtime (network kind ``segmenter``): tree instances and stuff masks of a photo.
+
+The Mask2Former-style network gives per-query class and mask logits; :func:`panoptic_merge`
+turns them into non-overlapping segments (greedy, as Mask2Former's panoptic inference), and
+:meth:`Segmenter.predict` into a :class:`SegmentationResult`. Imported by ``monodbh.toolkit``
+and the segmenter's training code (``panoptic_merge`` scores it on the runtime's path); imports
+numpy, cv2 and ``monodbh.models.runtime.common`` only.
+"""
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from typing import Any
+
+import cv2
+import numpy as np
+
+from monodbh.models.runtime.common import OnnxPredictor
+
+__all__ = ["SegmentationResult", "panoptic_merge", "Segmenter"]
+
+
+@dataclass
+class SegmentationResult:
+    """Output of :meth:`Segmenter.predict` (all maps at ``size`` = (W, H)).
+
+    Attributes
+    ----------
+    instance : (H, W) uint16
+        0 = no tree, k = tree ``k`` (1-based, trees sorted by decreasing score).
+    semantic : (H, W) uint8
+        Semantic id per pixel (0 sky, 1 ground, 2 other vegetation, 3 tree, 4 other;
+        255 = unassigned).
+    tree_scores : (N,) float32
+        Score of tree ``k`` at index ``k - 1``: class probability x mean mask probability.
+    classes : tuple of str
+        Class names by semantic id.
+
+    ``tree_masks`` (N, H, W) bool and ``stuff_masks`` (name -> (H, W) bool) are derived on
+    demand (a 12 MP photo with 40 trees would need 480 MB of masks).
+    """
+
+    instance: np.ndarray
+    semantic: np.ndarray
+    tree_scores: np.ndarray
+    classes: tuple[str, ...] = field(default_factory=tuple)
+    tree_class: int = 3
+
+    @property
+    def size(self) -> tuple[int, int]:
+        return (self.semantic.shape[1], self.semantic.shape[0])
+
+    @property
+    def n_trees(self) -> int:
+        return int(len(self.tree_scores))
+
+    def tree_mask(self, k: int) -> np.ndarray:
+        """(H, W) bool mask of tree ``k`` (1-based)."""
+        return self.instance == k
+
+    @property
+    def tree_masks(self) -> np.ndarray:
+        """(N, H, W) bool, one per tree (non-overlapping), by decreasing score."""
+        H, W = self.instance.shape
+        out = np.zeros((self.n_trees, H, W), bool)
+        for k in range(self.n_trees):
+            out[k] = self.instance == k + 1
+        return out
+
+    @property
+    def stuff_masks(self) -> dict[str, np.ndarray]:
+        """Class name -> (H, W) bool for the stuff classes present."""
+        out = {}
+        for c in np.unique(self.semantic):
+            if c == 255 or c == self.tree_class:
+                continue
+            name = self.classes[c] if c < len(self.classes) else str(int(c))
+            out[name] = self.semantic == c
+        return out
+
+
+def _sigmoid(x: np.ndarray) -> np.ndarray:
+    """Logistic function, float32, computed in place on a copy (fewer temporaries)."""
+    y = np.clip(x, -50, 50).astype(np.float32, copy=False)
+    np.negative(y, out=y)
+    np.exp(y, out=y)
+    y += 1.0
+    np.reciprocal(y, out=y)
+    return y
+
+
+def _softmax(x: np.ndarray) -> np.ndarray:
+    e = np.exp(x - x.max(-1, keepdims=True))
+    return e / e.sum(-1, keepdims=True)
+
+
+def panoptic_merge(class_logits: np.ndarray, mask_logits: np.ndarray, size: tuple[int, int],
+                   thing_classes: tuple[int, ...] = (3,), score_threshold: float = 0.5,
+                   overlap_threshold: float = 0.8, mask_threshold: float = 0.5,
+                   work_max_side: int | None = 640) -> dict[str, Any]:
+    """Mask2Former panoptic inference: greedy, non-overlapping segments.
+
+    Parameters
+    ----------
+    class_logits : (Q, C + 1)
+        Last class is "no object".
+    mask_logits : (Q, h, w)
+    size : (W, H)
+        Output resolution.
+    thing_classes : tuple of int
+        Classes whose queries become separate instances (tree); others merge per class.
+    score_threshold : float
+        Min class probability of a kept query (Mask2Former ``object_mask_threshold``, 0.8 there).
+    overlap_threshold : float
+        Min fraction of a query's own mask that survives the arg-max (Mask2Former default 0.8).
+    work_max_side : int or None
+        Masks are bilinearly upsampled (logit space) to a working resolution whose long side is
+        at most this, merged there, and the segment map is resized to ``size`` with nearest
+        neighbour (the logits are 1/4 of the network input, so a finer working grid adds no
+        information; 640 costs 150 ms for ~50 kept queries vs 340 ms at 1024). ``None``: merge
+        at ``size``.
+
+    Returns
+    -------
+    dict
+        ``segments``: list of ``{"id", "label", "score", "isthing", "query", "mask_prob"}``
+        (``mask_prob`` = mean mask probability inside the segment); ``panoptic`` (H, W) int32
+        segment id per pixel (0 = none).
+    """
+    W, H = int(size[0]), int(size[1])
+    if work_max_side and max(W, H) > work_max_side:
+        f = work_max_side / max(W, H)
+        w, h = max(1, int(round(W * f))), max(1, int(round(H * f)))
+    else:
+        w, h = W, H
+    C1 = class_logits.shape[-1]
+    probs = _softmax(class_logits.astype(np.float32))
+    labels = probs.argmax(-1)
+    scores = probs.max(-1)
+    keep = np.nonzero((labels != C1 - 1) & (scores > score_threshold))[0]
+    segments: list[dict[str, Any]] = []
+    if keep.size == 0:
+        return {"segments": segments, "panoptic": np.zeros((H, W), np.int32)}
+    # one pass over kept queries: arg-max of score * prob, the owner's prob, each query's area
+    best = np.zeros((h, w), np.float32)
+    best_p = np.zeros((h, w), np.float32)
+    owner = np.full((h, w), -1, np.int32)
+    orig_area = np.zeros(len(keep), np.int64)
+    for j, q in enumerate(keep):
+        m = mask_logits[q].astype(np.float32)
+        if m.shape != (h, w):
+            m = cv2.resize(m, (w, h), interpolation=cv2.INTER_LINEAR)
+        p = _sigmoid(m)
+        orig_area[j] = int(np.count_nonzero(p >= mask_threshold))
+        v = p * scores[q]
+        upd = v > best
+        best[upd] = v[upd]
+        best_p[upd] = p[upd]
+        owner[upd] = j
+    valid = (owner >= 0) & (best_p >= mask_threshold)
+    own_area = np.bincount(owner[owner >= 0], minlength=len(keep))
+    final_area = np.bincount(owner[valid], minlength=len(keep))
+    prob_sum = np.bincount(owner[valid], weights=best_p[valid], minlength=len(keep))
+    lut = np.zeros(len(keep) + 1, np.int32)  # index j + 1 -> segment id (index 0: owner -1)
+    stuff_ids: dict[int, int] = {}
+    next_id = 1
+    for j, q in enumerate(keep):
+        lab = int(labels[q])
+        isthing = lab in thing_classes
+        if own_area[j] == 0 or orig_area[j] == 0 or final_area[j] == 0:
+            continue
+        if own_area[j] / orig_area[j] < overlap_threshold:
+            continue
+        if not isthing and lab in stuff_ids:
+            lut[j + 1] = stuff_ids[lab]
+            continue
+        lut[j + 1] = next_id
+        if not isthing:
+            stuff_ids[lab] = next_id
+        segments.append({"id": next_id, "label": lab, "score": float(scores[q]),
+                         "isthing": isthing, "query": int(q),
+                         "mask_prob": float(prob_sum[j] / final_area[j])})
+        next_id += 1
+    pan = np.where(valid, lut[owner + 1], 0).astype(np.int32)
+    if (w, h) != (W, H):
+        pan = cv2.resize(pan, (W, H), interpolation=cv2.INTER_NEAREST)
+    return {"segments": segments, "panoptic": pan}
+
+
+class Segmenter(OnnxPredictor):
+    """Tree instance + stuff segmentation (Mask2Former-style network, kind ``"segmenter"``).
+
+    Outputs of the network: ``class_logits`` (1, Q, C + 1), ``mask_logits`` (1, Q, h, w).
+
+    Parameters
+    ----------
+    path : path, optional
+        ONNX file; default the shipped ``models/segmenter_int8.onnx``.
+    threads, manifest, spin : as :class:`~monodbh.models.runtime.common.OnnxPredictor`.
+    """
+
+    kind = "segmenter"
+
+    def __init__(self, path: str | os.PathLike | None = None, threads: int = 2,
+                 manifest: dict[str, Any] | None = None, *, spin: bool = False) -> None:
+        super().__init__("segmenter", path, threads, manifest, spin=spin)
+        self.classes = tuple(self.spec.get("classes") or ())
+        self.tree_class = int(self.spec.get("extra", {}).get("tree_class", 3))
+
+    def raw(self, rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Network outputs for a photo: ``(class_logits (Q, C+1), mask_logits (Q, h, w))``."""
+        out = self.run({"image": self.preprocess(rgb, "image")})
+        return out["class_logits"][0], out["mask_logits"][0]
+
+    def predict(self, rgb: np.ndarray, size: tuple[int, int] | None = None,
+                score_threshold: float = 0.5, overlap_threshold: float = 0.8,
+                mask_threshold: float = 0.5, work_max_side: int | None = 640
+                ) -> SegmentationResult:
+        """Segment a photo.
+
+        Parameters
+        ----------
+        rgb : (H, W, 3) uint8
+        size : (W, H), optional
+            Output resolution; default the photo's.
+        score_threshold, overlap_threshold, mask_threshold, work_max_side
+            See :func:`panoptic_merge`.
+        """
+        size = size or (rgb.shape[1], rgb.shape[0])
+        cls, msk = self.raw(rgb)
+        res = panoptic_merge(cls, msk, size, (self.tree_class,), score_threshold,
+                             overlap_threshold, mask_threshold, work_max_side)
+        pan = res["panoptic"]
+        segs = res["segments"]
+        trees = sorted((s for s in segs if s["isthing"]), key=lambda s: -s["score"] * s["mask_prob"])
+        lut_inst = np.zeros(len(segs) + 1, np.uint16)
+        lut_sem = np.full(len(segs) + 1, 255, np.uint8)
+        for s in segs:
+            lut_sem[s["id"]] = s["label"]
+        for k, s in enumerate(trees):
+            lut_inst[s["id"]] = k + 1
+        scores = np.array([s["score"] * s["mask_prob"] for s in trees], np.float32)
+        return SegmentationResult(instance=lut_inst[pan], semantic=lut_sem[pan], tree_scores=scores,
+                                  classes=self.classes, tree_class=self.tree_class)

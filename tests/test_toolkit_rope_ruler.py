@@ -1,0 +1,62 @@
+"""The rope as a ruler (toolkit/rope/ruler.py): its thickness read again on the full-resolution photo."""
+import cv2
+import numpy as np
+import pytest
+
+from monodbh.calib import Camera
+from monodbh.toolkit.frames import work_frame
+from monodbh.toolkit.rope.ruler import rope_at_full_resolution, rope_ruler
+from monodbh.toolkit.rope import detect_rope
+
+
+def _photo(W=3200, H=2400, thick=6.0, seed=0):
+    """A bark-brown trunk 400 px wide on a green background with a red band ``thick`` px
+    thick across it (a slight sag, anti-aliased), JPEG-compressed."""
+    rng = np.random.default_rng(seed)
+    img = np.empty((H, W, 3), np.uint8)
+    img[:] = (70, 110, 60)
+    x0, x1 = W // 2 - 200, W // 2 + 200
+    img[:, x0:x1] = (95, 75, 55)
+    img = np.clip(img.astype(np.int16) + rng.integers(-12, 12, img.shape), 0, 255).astype(np.uint8)
+    sup = 4
+    yy, xx = np.mgrid[0:240 * sup, 0:(x1 - x0) * sup] / sup
+    xc = (xx - (x1 - x0) / 2) / ((x1 - x0) / 2)
+    yc = 120 + 10 * (1 - xc ** 2)
+    cover = (np.abs(yy - yc) <= thick / 2).astype(np.float32)
+    cover = cover.reshape(240, sup, x1 - x0, sup).mean((1, 3))
+    y0 = H // 2 - 120
+    roi = img[y0:y0 + 240, x0:x1].astype(np.float32)
+    red = np.array([170, 25, 20], np.float32)
+    img[y0:y0 + 240, x0:x1] = (roi * (1 - cover[..., None]) + red * cover[..., None]).astype(np.uint8)
+    ok, buf = cv2.imencode(".jpg", img[:, :, ::-1], [cv2.IMWRITE_JPEG_QUALITY, 92])
+    return cv2.imdecode(buf, cv2.IMREAD_COLOR)[:, :, ::-1].copy()
+
+
+@pytest.mark.parametrize("dist", [None, (-0.05, 0.01, 0.0, 0.0, 0.0)])
+def test_full_resolution_reads_the_thickness_the_working_image_halves(dist):
+    rgb = _photo(thick=6.0)
+    H, W = rgb.shape[:2]
+    f = 0.8 * W
+    cam = Camera([[f, 0, W / 2 - 0.5], [0, f, H / 2 - 0.5], [0, 0, 1]], dist or [0.0] * 5, (W, H))
+    frame = work_frame(rgb, cam, 1600)
+    assert frame.image.shape[1] == 1600 and frame.scale[0] == pytest.approx(0.5)
+    rope = detect_rope(frame.image, None)
+    assert rope and rope.thickness_px < 4.5                  # 3 px in the working image
+    full = rope_at_full_resolution(rgb, cam, frame, rope)
+    assert full is not None and full["scale"] == pytest.approx(0.5)
+    assert full["thickness_px"] == pytest.approx(6.0, rel=0.2)
+    assert full["contrast"] > 0.09
+    ruler = rope_ruler(rgb, cam, frame, rope, is_line=True, diameter_known=True)
+    assert ruler.flags == ["rope_read_at_full_resolution"]
+    assert ruler.thickness_native_px == full["thickness_px"] and ruler.thickness_px == pytest.approx(3.0, rel=0.2)
+    assert rope_ruler(rgb, cam, frame, rope, is_line=False, diameter_known=True).thickness_px is None
+    assert rope_ruler(rgb, cam, frame, rope, is_line=True, diameter_known=True,
+                      full_resolution=False).flags == []
+
+
+def test_full_resolution_needs_a_larger_photo():
+    rgb = _photo(W=1600, H=1200, thick=6.0)
+    cam = Camera([[1280, 0, 799.5], [0, 1280, 599.5], [0, 0, 1]], [0.0] * 5, (1600, 1200))
+    frame = work_frame(rgb, cam, 1600)
+    rope = detect_rope(frame.image, None)
+    assert rope and rope_at_full_resolution(rgb, cam, frame, rope) is None

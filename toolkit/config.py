@@ -1,0 +1,40 @@
+"""Configuration of the measuring path: :class:`MeasureConfig`, the documented parameters a
+:class:`~monodbh.toolkit.pipeline.Session` measures with.
+
+Lives here: the top-level parameters and the composition of each stage's own configuration.
+Imported by the library's modules; imports only their config classes.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from .rope.config import RopeConfig
+
+__all__ = ["MeasureConfig"]
+
+
+@dataclass(frozen=True)
+class MeasureConfig:
+    """Parameters of ``dbh measure`` (defaults: the shipped behaviour).
+
+    Attributes
+    ----------
+    work_long_side_px : photos are measured at this long side (pixels; never upscaled); edges are
+        located to sub-pixel precision there (docs/decisions/work-resolution.md).
+    rope_full_resolution : with a known rope diameter, read the rope's thickness again on the
+        full-resolution photo when it is larger than the working image
+        (docs/decisions/work-resolution.md).
+    overlap_networks : run the segmenter and the depth network on a background thread while the
+        band detector searches the rope (docs/decisions/threads.md); off: they run when first needed.
+    depth_mirror_average : the depth network sees the photo and its mirror image and averages them
+        (docs/decisions/threads.md); the error model is valid only for the setting it was measured with.
+    stem_base_threshold : the stem-base network's probability needed to use its base
+        (docs/decisions/stem-base.md).
+    rope : the rope cascade's parameters (:class:`~monodbh.toolkit.rope.config.RopeConfig`).
+    """
+    work_long_side_px: int = 1600
+    rope_full_resolution: bool = True
+    overlap_networks: bool = True
+    depth_mirror_average: bool = True
+    stem_base_threshold: float = 0.3
+    rope: RopeConfig = field(default_factory=RopeConfig)

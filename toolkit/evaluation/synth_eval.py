@@ -1,0 +1,339 @@
+"""``dbh eval``: measure every sample of a ``dbh synth`` folder and score the DBH against the truth.
+
+:func:`read_eval_samples` reads the samples' records, :func:`eval_jobs` makes their
+``toolkit.batch`` jobs (with the simulated taps and rope diameters of the chosen mode),
+:func:`eval_record` joins a result to its sample's truth, :func:`eval_metrics` and
+:func:`stage_stats` score the records, :func:`eval_report` is the ``--json`` report and
+:func:`print_eval` prints the tables.
+
+Imported by ``monodbh.cli.eval_cmd``; imports ``toolkit.batch`` and the evaluation modules
+:mod:`.synth_samples` and :mod:`.taps` (rich only to print).
+"""
+from __future__ import annotations
+
+import json
+import math
+import statistics
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Optional, Sequence
+
+from monodbh.calib.errors import MonodbhError
+from monodbh.toolkit.batch import Job
+
+from .synth_samples import camera_from_meta, gt_dbh_cm, gt_rope_px, on_true_rope, true_rope_diameter_m
+from .taps import sample_base_tap, sample_rope_tap
+
+__all__ = ["EvalSample", "SampleRecordError", "read_eval_samples", "eval_jobs", "eval_record", "eval_report",
+           "eval_metrics", "stage_stats", "print_eval", "ROPE_PX_BINS"]
+
+
+class SampleRecordError(MonodbhError):
+    """A sample's ``.json`` record cannot be read or lacks what the evaluation needs."""
+
+
+@dataclass(frozen=True)
+class EvalSample:
+    """One sample of the evaluated folder and its true values.
+
+    Attributes
+    ----------
+    index : int
+        The sample's number ``NNNNNN``.
+    stem : Path
+        ``folder/NNNNNN`` (the photo is ``stem.jpg``).
+    meta : dict
+        Its record.
+    camera : monodbh.calib.Camera
+        Its camera (:func:`.synth_samples.camera_from_meta`).
+    gt_dbh_cm : float or None
+        The roped tree's true DBH; None for a scene without rope.
+    gt_rope_px : float or None
+        The rope's thickness in photo pixels (:func:`.synth_samples.gt_rope_px`); None
+        without rope.
+    """
+    index: int
+    stem: Path
+    meta: dict
+    camera: Any
+    gt_dbh_cm: Optional[float]
+    gt_rope_px: Optional[float]
+
+
+def read_eval_samples(folder: Path, indices: Sequence[int]) -> list[EvalSample]:
+    """The samples ``indices`` of ``folder`` with their cameras and true values.
+
+    Raises
+    ------
+    SampleRecordError
+        A record cannot be read or parsed (the message names its file).
+    """
+    out = []
+    for i in indices:
+        stem = Path(folder) / f"{i:06d}"
+        try:
+            meta = json.loads(stem.with_suffix(".json").read_text())
+            cam = camera_from_meta(meta)
+            gt = gt_dbh_cm(meta)
+        except (OSError, ValueError, KeyError, TypeError, IndexError) as exc:
+            raise SampleRecordError(f"{stem.with_suffix('.json')}: bad sample record "
+                                    f"({type(exc).__name__}: {exc})") from None
+        out.append(EvalSample(i, stem, meta, cam, gt, gt_rope_px(meta) if gt is not None else None))
+    return out
+
+
+def eval_jobs(samples: Sequence[EvalSample], *, tap_base: bool = False, tap_rope: bool = False,
+              tap_noise_px: float = 3.0, rope_known: bool = False,
+              out_dir: Optional[Path] = None) -> list[Job]:
+    """The batch jobs measuring ``samples`` (in order), as a user of the chosen mode would.
+
+    Parameters
+    ----------
+    samples : sequence of EvalSample
+    tap_base : bool
+        Give each photo a simulated stem-base tap (``base_xy``) where the base is visible
+        (:func:`.taps.sample_base_tap`, noise ``tap_noise_px`` seeded by the sample's index).
+    tap_rope : bool
+        Give each photo a simulated rope tap (``pick_xy``) where the rope is visible
+        (:func:`.taps.sample_rope_tap`).
+    tap_noise_px : float
+        1-sigma of the simulated taps, pixels per axis.
+    rope_known : bool
+        Give each photo its rope's true diameter (``rope_diameter_m``).
+    out_dir : Path, optional
+        Write overlays (and tree PLYs) there.
+
+    Returns
+    -------
+    list of toolkit.batch.Job
+    """
+    jobs = []
+    for n, s in enumerate(samples):
+        base_xy = sample_base_tap(s.stem, s.meta, tap_noise_px, s.index) if tap_base else None
+        pick_xy = sample_rope_tap(s.stem, s.meta, tap_noise_px, s.index) if tap_rope else None
+        rope_m = true_rope_diameter_m(s.meta) if rope_known else None
+        jobs.append(Job(n, str(s.stem.with_suffix(".jpg")), s.camera, pick_xy=pick_xy, base_xy=base_xy,
+                        rope_diameter_m=rope_m, out_dir=str(out_dir) if out_dir else None))
+    return jobs
+
+
+def eval_record(sample: EvalSample, result: dict) -> dict:
+    """One row of the report: the sample's truth joined to its result (``MeasureResult.to_json_dict``).
+
+    Keys ``sample``, ``gt_dbh_cm``, ``gt_rope_px``, ``err_cm`` (measured - true), ``on_true_rope``
+    (:func:`.synth_samples.on_true_rope`, for measured roped samples), then the result's fields.
+    """
+    gt, d = sample.gt_dbh_cm, result
+    on = (on_true_rope(sample.stem, sample.meta, d.get("rope_xy"))
+          if gt is not None and d["dbh_cm"] is not None else None)
+    return {"sample": sample.index, "gt_dbh_cm": gt, "gt_rope_px": sample.gt_rope_px,
+            "err_cm": (d["dbh_cm"] - gt if gt is not None and d["dbh_cm"] is not None else None),
+            "on_true_rope": on, **d}
+
+
+def eval_report(folder: Path, records: Sequence[dict], jobs: Sequence[Job], metrics: dict, stages: dict, *,
+                gt_perception: bool, tap_base: bool, tap_rope: bool, tap_noise_px: float, rope_known: bool,
+                interrupted: bool) -> dict:
+    """The ``dbh eval --json`` report: the mode, ``metrics`` (:func:`eval_metrics`), ``timings_ms``
+    (:func:`stage_stats`) and the rows ``samples`` (:func:`eval_record`)."""
+    return {"folder": str(folder), "gt_perception": gt_perception, "interrupted": interrupted,
+            "tap_base": ({"noise_px": tap_noise_px, "tapped": sum(j.base_xy is not None for j in jobs)}
+                         if tap_base else None),
+            "tap_rope": ({"noise_px": tap_noise_px, "tapped": sum(j.pick_xy is not None for j in jobs)}
+                         if tap_rope else None),
+            "rope_known": rope_known,
+            "metrics": metrics, "timings_ms": stages, "samples": list(records)}
+
+
+#: thickness bins (pixels, lower edges) of the per-rope-thickness detection table
+ROPE_PX_BINS = (0.0, 1.0, 2.0, 3.0, 5.0)
+
+
+def _stats(v: Sequence[float]) -> Optional[dict]:
+    if not v:
+        return None
+    return {"mean": statistics.fmean(v), "median": statistics.median(v), "n": len(v)}
+
+
+def stage_stats(timings: Sequence[dict]) -> dict:
+    """``{stage: {"mean", "median", "n"}}`` (ms) over the ``timings_ms`` dicts, ``total`` last."""
+    stages: dict[str, list[float]] = {}
+    for t in timings:
+        for k, v in (t or {}).items():
+            if v is not None and math.isfinite(float(v)):
+                stages.setdefault(k, []).append(float(v))
+    order = [k for k in stages if k != "total"] + (["total"] if "total" in stages else [])
+    return {k: _stats(stages[k]) for k in order}
+
+
+def _reason(rec: dict) -> str:
+    err = rec["error"] or ""
+    p = rec.get("photo") or ""
+    return err[len(p) + 2:] if p and err.startswith(p + ": ") else err
+
+
+def eval_metrics(records: Sequence[dict]) -> dict:
+    """Accuracy metrics of per-sample records.
+
+    Parameters
+    ----------
+    records : sequence of dict
+        ``gt_dbh_cm`` (None for no-rope scenes), ``dbh_cm``, ``dbh_sigma_cm``, ``error``.
+
+    Returns
+    -------
+    dict
+        ``samples``, ``roped``, ``no_rope``, ``measured``, ``detection_rate`` (measured / roped),
+        ``mae_cm``, ``rel_mae_pct``, ``rmse_cm``, ``bias_cm``, ``median_abs_err_cm``,
+        ``p90_abs_err_cm``, ``coverage_1sigma``, ``coverage_2sigma`` (fractions of measured roped
+        samples with a sigma whose ``|err| <= k sigma``), ``refusal_rate`` (no-rope scenes
+        correctly refused), ``false_measurements`` (no-rope scenes given a DBH),
+        ``wrong_rope`` (measured roped samples whose rope is another band: a wrong tree measured,
+        of ``rope_checked`` with ground truth to tell), ``failure_reasons`` (roped scenes' error
+        messages, counted), ``by_scale_source``,
+        ``by_rope_px`` (detection rate and MAE per bin of ``gt_rope_px``, where records have it).
+    """
+    roped = [r for r in records if r.get("gt_dbh_cm") is not None]
+    norope = [r for r in records if r.get("gt_dbh_cm") is None]
+    meas = [r for r in roped if r.get("error") is None and r.get("dbh_cm") is not None]
+    err = [float(r["dbh_cm"]) - float(r["gt_dbh_cm"]) for r in meas]
+    ae = [abs(e) for e in err]
+    rel = [abs(e) / float(r["gt_dbh_cm"]) * 100.0 for e, r in zip(err, meas) if r["gt_dbh_cm"] > 0]
+    with_sigma = [(abs(e), float(r["dbh_sigma_cm"])) for e, r in zip(err, meas)
+                  if r.get("dbh_sigma_cm") is not None and float(r["dbh_sigma_cm"]) > 0]
+    refused = [r for r in norope if r.get("error") is not None or r.get("dbh_cm") is None]
+    checked = [r for r in meas if r.get("on_true_rope") is not None]
+    reasons: dict[str, int] = {}
+    for r in roped:
+        if r.get("error") is not None:
+            reasons[_reason(r)] = reasons.get(_reason(r), 0) + 1
+
+    def mean(v):
+        return statistics.fmean(v) if v else None
+
+    return {
+        "samples": len(records), "roped": len(roped), "no_rope": len(norope), "measured": len(meas),
+        "detection_rate": len(meas) / len(roped) if roped else None,
+        "mae_cm": mean(ae), "rel_mae_pct": mean(rel),
+        "rmse_cm": math.sqrt(mean([e * e for e in err])) if err else None,
+        "bias_cm": mean(err),
+        "median_abs_err_cm": statistics.median(ae) if ae else None,
+        "p90_abs_err_cm": (sorted(ae)[min(len(ae) - 1, math.ceil(0.9 * len(ae)) - 1)] if ae else None),
+        "coverage_1sigma": mean([float(a <= s) for a, s in with_sigma]),
+        "coverage_2sigma": mean([float(a <= 2 * s) for a, s in with_sigma]),
+        "with_sigma": len(with_sigma),
+        "refusal_rate": len(refused) / len(norope) if norope else None,
+        "false_measurements": len(norope) - len(refused),
+        "wrong_rope": sum(1 for r in checked if not r["on_true_rope"]),
+        "rope_checked": len(checked),
+        "failure_reasons": dict(sorted(reasons.items(), key=lambda kv: -kv[1])),
+        "by_scale_source": _by_source(meas),
+        "by_rope_px": _by_rope_px(roped),
+    }
+
+
+def _by_rope_px(roped: Sequence[dict]) -> dict:
+    """Detection rate and MAE of the roped samples per rope thickness bin (``gt_rope_px``).
+
+    Keys ``"lo-hi px"`` (the last ``">=lo px"``); samples without ``gt_rope_px`` are left out.
+    """
+    out = {}
+    edges = list(ROPE_PX_BINS) + [math.inf]
+    for lo, hi in zip(edges[:-1], edges[1:]):
+        rs = [r for r in roped if r.get("gt_rope_px") is not None and lo <= float(r["gt_rope_px"]) < hi]
+        if not rs:
+            continue
+        ms = [r for r in rs if r.get("error") is None and r.get("dbh_cm") is not None]
+        ae = [abs(float(r["dbh_cm"]) - float(r["gt_dbh_cm"])) for r in ms]
+        key = f"{lo:g}-{hi:g} px" if math.isfinite(hi) else f">={lo:g} px"
+        out[key] = {"roped": len(rs), "measured": len(ms), "detection_rate": len(ms) / len(rs),
+                    "mae_cm": statistics.fmean(ae) if ae else None}
+    return out
+
+
+def _by_source(meas: Sequence[dict]) -> dict:
+    """DBH accuracy grouped by the leading scale source (the first of ``scale_source``)."""
+    groups: dict[str, list] = {}
+    for r in meas:
+        key = str(r.get("scale_source") or "?").split("+")[0]
+        groups.setdefault(key, []).append(r)
+    out = {}
+    for k, rs in sorted(groups.items(), key=lambda kv: -len(kv[1])):
+        ae = [abs(float(r["dbh_cm"]) - float(r["gt_dbh_cm"])) for r in rs]
+        rel = [a / float(r["gt_dbh_cm"]) * 100.0 for a, r in zip(ae, rs) if r["gt_dbh_cm"] > 0]
+        cov = [float(a <= 2 * float(r["dbh_sigma_cm"])) for a, r in zip(ae, rs) if r.get("dbh_sigma_cm")]
+        out[k] = {"n": len(rs), "mae_cm": statistics.fmean(ae), "rel_mae_pct": statistics.fmean(rel) if rel else None,
+                  "coverage_2sigma": statistics.fmean(cov) if cov else None}
+    return out
+
+
+# -- tables -----------------------------------------------------------------------------------------
+def _fmt(v: Any, fmt: str = "{:.2f}", pct: bool = False) -> str:
+    if v is None:
+        return "-"
+    return f"{v * 100:.1f} %" if pct else fmt.format(v)
+
+
+def _table(title: str, columns: Sequence[str], rows: Sequence[Sequence[str]], left: Sequence[str] = ()):
+    from rich.table import Table
+
+    t = Table(title=title, show_header=True, header_style="bold")
+    for c in columns:
+        t.add_column(c, justify="left" if c in left else "right")
+    for r in rows:
+        t.add_row(*r)
+    return t
+
+
+def _accuracy_rows(m: dict) -> list[tuple[str, str]]:
+    rows = [
+        ("samples (roped / no rope)", f"{m['samples']} ({m['roped']} / {m['no_rope']})"),
+        ("detection rate (measured / roped)", f"{_fmt(m['detection_rate'], pct=True)} ({m['measured']})"),
+        ("DBH MAE", _fmt(m["mae_cm"], "{:.2f} cm")),
+        ("relative MAE", _fmt(m["rel_mae_pct"], "{:.1f} %")),
+        ("RMSE", _fmt(m["rmse_cm"], "{:.2f} cm")),
+        ("bias (measured - true)", _fmt(m["bias_cm"], "{:+.2f} cm")),
+        ("median / p90 |error|", f"{_fmt(m['median_abs_err_cm'], '{:.2f}')} / "
+                                 f"{_fmt(m['p90_abs_err_cm'], '{:.2f}')} cm"),
+        ("|err| <= 1 sigma", _fmt(m["coverage_1sigma"], pct=True)),
+        ("|err| <= 2 sigma", _fmt(m["coverage_2sigma"], pct=True)),
+        ("no-rope scenes correctly refused", f"{_fmt(m['refusal_rate'], pct=True)}"
+                                            f" ({m['false_measurements']} measured)"),
+    ]
+    if m.get("rope_checked"):
+        rows.insert(2, ("measured on another band (wrong tree)", f"{m['wrong_rope']} of {m['rope_checked']}"))
+    return rows
+
+
+def print_eval(m: dict, stages: dict, console) -> None:
+    """Print the tables of ``dbh eval``: accuracy, time per stage, by scale source, by rope
+    thickness, failures (``m`` from :func:`eval_metrics`, ``stages`` from :func:`stage_stats`)."""
+    from rich.table import Table
+
+    t = Table(title="DBH accuracy", show_header=True, header_style="bold")
+    t.add_column("metric")
+    t.add_column("value", justify="right")
+    for r in _accuracy_rows(m):
+        t.add_row(*r)
+    console.print(t)
+    if stages:
+        console.print(_table("time per stage", ("stage", "mean", "median", "n"),
+                             [(k, f"{v['mean']:.1f} ms", f"{v['median']:.1f} ms", str(v["n"]))
+                              for k, v in stages.items()], left=("stage",)))
+    if m.get("by_scale_source"):
+        console.print(_table("by leading scale source", ("source", "n", "MAE", "relative MAE", "|err| <= 2 sigma"),
+                             [(k, str(v["n"]), _fmt(v["mae_cm"], "{:.2f} cm"), _fmt(v["rel_mae_pct"], "{:.1f} %"),
+                               _fmt(v["coverage_2sigma"], pct=True)) for k, v in m["by_scale_source"].items()],
+                             left=("source",)))
+    if m.get("by_rope_px"):
+        console.print(_table("by rope thickness (photo px)", ("rope", "roped", "measured", "detection rate", "MAE"),
+                             [(k, str(v["roped"]), str(v["measured"]), _fmt(v["detection_rate"], pct=True),
+                               _fmt(v["mae_cm"], "{:.2f} cm")) for k, v in m["by_rope_px"].items()],
+                             left=("rope",)))
+    if m["failure_reasons"]:
+        f = Table(title="failures on roped scenes", show_header=True, header_style="bold")
+        f.add_column("count", justify="right")
+        f.add_column("error", style="red", overflow="fold")
+        for k, n in list(m["failure_reasons"].items())[:8]:
+            f.add_row(str(n), k)
+        console.print(f)

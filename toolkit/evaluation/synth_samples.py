@@ -1,0 +1,129 @@
+"""The samples of a ``dbh synth`` folder as the evaluation reads them: listing, camera, true values.
+
+A sample ``NNNNNN`` is ``NNNNNN.jpg`` (the photo), ``NNNNNN.json`` (its record: camera ``K``,
+``dist``, ``width``, ``height``, pose, ``trees``, ``roped_tree``, ``rope``) and ``NNNNNN.npz``
+(ground-truth arrays ``monodbh.models.synthetic.io.GT_KEYS``). The folder is read directly;
+only :func:`read_ground_truth` imports the dataset format's module (not the renderer).
+
+Imported by the other evaluation modules and ``monodbh.cli``; imports ``monodbh.calib``, numpy
+and ``monodbh.models.synthetic.io``.
+"""
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+
+__all__ = ["list_synth_samples", "camera_from_meta", "read_ground_truth", "gt_dbh_cm", "gt_rope_px",
+           "true_rope_diameter_m", "on_true_rope", "WRONG_ROPE_FRACTION"]
+
+#: a measured photo's rope (``rope_xy``) farther than this fraction of the photo's long side from
+#: every pixel of the roped tree's true rope is another band: a wrong tree was measured
+WRONG_ROPE_FRACTION = 0.012
+
+
+def list_synth_samples(folder: str | os.PathLike, *, need_npz: bool = False) -> list[int]:
+    """Indices of the samples ``NNNNNN.jpg`` + ``NNNNNN.json`` (+ ``.npz``) in ``folder``, sorted."""
+    out = []
+    for p in Path(folder).glob("[0-9]" * 6 + ".json"):
+        if p.with_suffix(".jpg").is_file() and (not need_npz or p.with_suffix(".npz").is_file()):
+            out.append(int(p.stem))
+    return sorted(out)
+
+
+def camera_from_meta(meta: dict):
+    """The ``monodbh.calib.Camera`` of a synthetic sample (``K``, ``dist``, ``width``, ``height``).
+
+    Parameters
+    ----------
+    meta : dict
+        The sample's record; ``dist`` may be missing (no distortion).
+
+    Returns
+    -------
+    monodbh.calib.Camera
+        Named ``"synthetic"``, for the photo's full size.
+    """
+    from monodbh.calib import Camera
+
+    return Camera(meta["K"], meta.get("dist"), (int(meta["width"]), int(meta["height"])),
+                  name="synthetic")
+
+
+def read_ground_truth(photo: str | os.PathLike) -> dict:
+    """The ground truth of the sample whose photo is ``photo``: the ``.npz`` and ``.json`` beside it.
+
+    Returns
+    -------
+    dict
+        ``monodbh.models.synthetic.io.GT_KEYS`` (``depth`` (H, W) float32 metres, ``semantic`` (H, W) uint8,
+        ``instance`` (H, W) int, ``rope`` (H, W) bool, ``z1``/``z2`` (H, W) float32) and
+        ``meta`` (the record); no ``rgb`` (the caller reads the photo as it is measured).
+
+    Raises
+    ------
+    OSError, ValueError, KeyError
+        A missing or unreadable file or array.
+    """
+    from monodbh.models.synthetic.io import GT_KEYS
+
+    stem = Path(photo).with_suffix("")
+    out: dict = {}
+    with np.load(stem.with_suffix(".npz")) as z:
+        for k in GT_KEYS:
+            out[k] = z[k]
+    out["meta"] = json.loads(stem.with_suffix(".json").read_text())
+    return out
+
+
+def gt_dbh_cm(meta: dict) -> Optional[float]:
+    """Ground-truth DBH (cm) of the roped tree, or None for a scene without rope."""
+    k = meta.get("roped_tree")
+    if not k:
+        return None
+    return float(meta["trees"][int(k) - 1]["dbh_m"]) * 100.0
+
+
+def gt_rope_px(meta: dict) -> Optional[float]:
+    """The roped tree's rope thickness in photo pixels, ``fx D / z`` (``z`` the stem's front at 1.3 m).
+
+    None for a scene without rope or a record without the rope's diameter. The rope detector's
+    working range starts at about 1 px (1-2 px ropes at 10 m); ``dbh eval`` reports the detection
+    rate per thickness bin (``synth_eval.ROPE_PX_BINS``).
+    """
+    k = meta.get("roped_tree")
+    rope = meta.get("rope") or {}
+    try:
+        tree = next(t for t in meta["trees"] if t["id"] == k)
+        z = float(tree["bh_point_cam"][2]) - float(tree["r_bh_m"])
+        return float(meta["K"][0][0]) * float(rope["tube_diameter_m"]) / z if z > 0 else None
+    except (KeyError, StopIteration, TypeError, ValueError, IndexError):
+        return None
+
+
+def true_rope_diameter_m(meta: dict) -> float | None:
+    """The rope's true diameter (m) in a sample record, as a user gives it with ``dbh measure
+    --rope-mm`` (``dbh eval --rope-known``); None for a scene without rope."""
+    d = (meta.get("rope") or {}).get("tube_diameter_m")
+    return None if d is None else float(d)
+
+
+def on_true_rope(stem: Path, meta: dict, rope_xy) -> Optional[bool]:
+    """Does the reported rope centre ``rope_xy`` (photo pixels) lie on the roped tree's true rope?
+
+    Within :data:`WRONG_ROPE_FRACTION` of the photo's long side of a true rope pixel. None when
+    the sample has no rope, no reported rope or no ``.npz`` ground truth.
+    """
+    k = meta.get("roped_tree")
+    npz = Path(stem).with_suffix(".npz")
+    if not k or rope_xy is None or not npz.is_file():
+        return None
+    with np.load(npz) as z:
+        ys, xs = np.nonzero(z["rope"] & (z["instance"] == k))
+    if not len(xs):
+        return None
+    tol = WRONG_ROPE_FRACTION * max(int(meta["width"]), int(meta["height"]))
+    return bool(np.min(np.hypot(xs - float(rope_xy[0]), ys - float(rope_xy[1]))) <= tol)
