@@ -91,21 +91,38 @@ def reconstruct(
         raise typer.BadParameter(f"{calib} has no camera pose (run dbh calibrate-pose)", param_hint="--frame")
 
     from monodbh.calib import MonodbhError
-    from monodbh.toolkit.batch import DEFAULT_RECONSTRUCT, error_result, normalise_result, one_line
+    from monodbh.toolkit.batch import DEFAULT_RECONSTRUCT, normalise_result
     from monodbh.toolkit.outputs.cloud_io import write_cloud
-    from monodbh.toolkit.result import MeasureResult, PointCloud
 
     backend = make_backend(measure_fn, session_factory, models_dir, default_fn=DEFAULT_RECONSTRUCT)
     if not Path(photo).is_file():
         raise fail(f"{photo}: no such file")
+    kw: dict = {"pick_xy": pick_xy} if pick_xy else {}
+    if base_xy:
+        kw["base_xy"] = base_xy
+    if rope_mm is not None:
+        kw["rope_diameter_m"] = rope_mm / 1000.0
+    res, cloud = _run(backend, photo, camera, kw)
+    res = normalise_result(res, photo)
+    cloud = to_frame(cloud, frame, camera, photo)
+    try:
+        write_cloud(output, cloud)
+    except MonodbhError as exc:
+        raise fail(str(exc))
+    if as_json:
+        typer.echo(json.dumps(res.to_json_dict(), ensure_ascii=False))
+    _print_summary(res, cloud, output, frame)
+
+
+def _run(backend, photo: str, camera, kw: dict):
+    """Call the reconstruct function; returns (MeasureResult, PointCloud) or exits with a one-line error."""
+    from monodbh.calib import MonodbhError
+    from monodbh.toolkit.batch import error_result, one_line
+    from monodbh.toolkit.result import MeasureResult, PointCloud
+
     try:
         fn = backend.function()
         session = backend.new_session()
-        kw = {"pick_xy": pick_xy} if pick_xy else {}
-        if base_xy:
-            kw["base_xy"] = base_xy
-        if rope_mm is not None:
-            kw["rope_diameter_m"] = rope_mm / 1000.0
         out = fn(photo, camera, session=session, **kw)
     except MonodbhError as exc:
         raise fail(str(exc))
@@ -120,23 +137,18 @@ def reconstruct(
     if cloud is None or not len(cloud):
         msg = res.error if getattr(res, "error", None) else "no 3D points reconstructed"
         raise fail(f"{photo}: {msg}" if not msg.startswith(str(photo)) else msg)
-    res = normalise_result(res, photo)
-    cloud = to_frame(cloud, frame, camera, photo)
-    try:
-        write_cloud(output, cloud)
-    except MonodbhError as exc:
-        raise fail(str(exc))
+    return res, cloud
 
+
+def _print_summary(res, cloud, output: Path, frame: str) -> None:
+    """One line on the cloud written and one on the measured tree, on stderr."""
     import numpy as np
-
-    ids = np.unique(np.asarray(cloud.tree_id))
-    n_trees = int((ids > 0).sum())
-    if as_json:
-        typer.echo(json.dumps(res.to_json_dict(), ensure_ascii=False))
     from rich.console import Console
 
     from monodbh.toolkit.outputs.overlay import format_dbh
 
+    ids = np.unique(np.asarray(cloud.tree_id))
+    n_trees = int((ids > 0).sum())
     con = Console(stderr=True, highlight=False, soft_wrap=True)
     con.print(f"{output}: {len(cloud):,} points, {n_trees} tree{'s' if n_trees != 1 else ''} "
               f"({frame} frame)")

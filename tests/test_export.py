@@ -63,6 +63,7 @@ def test_int8_quantization_runs_and_table_has_columns(tiny_onnx, tmp_path):
     assert header == [c if c != "metric" else "m" for c in TABLE_COLUMNS]
 
 
+@pytest.mark.slow
 def test_search_int8_refuses_and_keeps_best(tiny_onnx, tmp_path):
     spec = get_spec("segmenter", "tiny")
     feeds = [random_feeds(spec, i) for i in range(2)]
@@ -85,6 +86,7 @@ def test_search_int8_refuses_and_keeps_best(tiny_onnx, tmp_path):
     assert [r["model"] for r in res["rows"]] == ["fp32", DEFAULT_RECIPES[0].name, "dyn"]
 
 
+@pytest.mark.slow
 def test_export_run_writes_report_and_ships(tmp_path):
     data = [fake_sample(i) for i in range(3)]
     run = tmp_path / "run"

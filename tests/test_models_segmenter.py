@@ -1,4 +1,5 @@
 """Segmenter network, Hungarian loss, metrics and training smoke tests (tiny model, 64x64)."""
+import pytest
 import json
 
 import numpy as np
@@ -119,6 +120,7 @@ def test_pq_and_roped_iou_perfect_prediction():
     assert stats[:, 1].sum() == 0 and stats[:, 3].sum() > 0    # nothing predicted -> all FN
 
 
+@pytest.mark.slow
 def test_train_smoke_writes_run_and_resumes_exactly(tmp_path):
     data = [fake_sample(i) for i in range(4)]
     kw = dict(size="tiny", batch_size=2, val_data=data[:2], n_val=2, val_every=2, ckpt_every=1,

@@ -28,6 +28,7 @@ def test_scale_recovery_and_dbh_on_a_synthetic_scene():
     assert done >= 1
 
 
+@pytest.mark.slow
 def test_user_tapped_stem_base_sets_the_scale():
     """A tapped stem base (``--base``) gives the scale by rope-to-base metrology, whatever the
     depth map's scale; a tap above the rope is refused with a flag."""
@@ -63,6 +64,7 @@ def test_user_tapped_stem_base_sets_the_scale():
     assert done == 1
 
 
+@pytest.mark.slow
 def test_circle_only_checks_the_tangent_estimate_when_the_scale_is_precise():
     """Network perception: with a tapped stem base the DBH is the tangent estimate (the tree
     network's circle stays in ``estimates_cm`` as a check); with a depth-network scale the two

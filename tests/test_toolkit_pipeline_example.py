@@ -53,3 +53,25 @@ def test_pick_away_from_the_rope_is_an_error_not_another_band(session):
     # a tap on the rope measures the same tree
     r = pl.measure_photo(str(EX / "example.jpg"), cam, session=session, pick_xy=(x + 2, y + 1))
     assert r.error is None and np.isclose(r.dbh_cm, ok.dbh_cm, rtol=0.05)
+
+
+def test_the_session_configuration_reaches_the_geometry(session):
+    """A Session's MeasureConfig.geometry is the one the geometry measures with."""
+    import dataclasses
+
+    from monodbh.toolkit.geometry.config import DbhConfig, GeometryConfig
+    cam = load_camera(EX / "cam.yaml")
+    ok = pl.measure_photo(str(EX / "example.jpg"), cam, session=session)
+    assert "few_pixels_across_stem" not in ok.flags
+    strict = MeasureConfig(geometry=GeometryConfig(dbh=DbhConfig(few_pixels_px=1e6)))
+    other = dataclasses.replace(session.config, geometry=strict.geometry)
+    session_strict = pl.Session(config=other)
+    r = pl.measure_photo(str(EX / "example.jpg"), cam, session=session_strict)
+    assert "few_pixels_across_stem" in r.flags and r.dbh_cm == ok.dbh_cm
+
+
+def test_idle_thread_spinning_comes_from_the_environment(monkeypatch):
+    monkeypatch.setenv("MONODBH_ORT_SPIN", "1")
+    assert MeasureConfig().ort_spin is True
+    monkeypatch.setenv("MONODBH_ORT_SPIN", "0")
+    assert MeasureConfig().ort_spin is False

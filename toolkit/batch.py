@@ -20,19 +20,14 @@ becomes the row's ``error`` (its one-line message); any other exception becomes
 function or session themselves (import error, models missing) is raised once as
 :class:`BatchError`, since every photo would fail the same way.
 
-:class:`ResultWriter` writes the rows as they come: JSON lines on a stream (flushed per line),
-a CSV appended and flushed per photo, and with an output folder ``results.jsonl`` and
-``summary.json`` (rewritten atomically, :mod:`monodbh.toolkit.outputs.atomic`).
+:class:`ResultWriter` (:mod:`monodbh.toolkit.outputs.results_file`, re-exported here) writes
+the rows as they come.
 """
 from __future__ import annotations
 
-import csv
 import importlib
-import io
-import json
 import math
 import os
-import statistics
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -40,8 +35,8 @@ from typing import Any, Callable, Iterable, Iterator, Optional, Sequence
 
 from monodbh.calib.errors import MonodbhError
 
-from .outputs.atomic import atomic_write_text
-from .result import RESULT_FIELDS, MeasureResult
+from .outputs.results_file import ResultWriter, csv_row, json_default, summarise  # re-exported
+from .result import MeasureResult
 
 __all__ = ["Backend", "Job", "BatchError", "ResultWriter", "DEFAULT_MEASURE", "DEFAULT_SESSION",
            "DEFAULT_RECONSTRUCT", "PHOTO_EXTENSIONS", "load_object", "run_job", "iter_results",
@@ -379,136 +374,3 @@ def unique_stems(photos: Sequence[str]) -> list[str]:
         seen[stem] = n
         out.append(stem if n == 1 else f"{stem}_{n}")
     return out
-
-
-# -- outputs -------------------------------------------------------------------------------------
-def csv_row(d: dict) -> list[str]:
-    """CSV cells of a JSON dict: None -> empty, lists/dicts -> compact JSON, numbers as text."""
-    cells = []
-    for k in RESULT_FIELDS:
-        v = d.get(k)
-        if v is None:
-            cells.append("")
-        elif isinstance(v, (list, dict)):
-            cells.append(json.dumps(v, separators=(",", ":"), ensure_ascii=False))
-        else:
-            cells.append(str(v))
-    return cells
-
-
-def _json_line(d: dict) -> str:
-    return json.dumps(d, ensure_ascii=False, allow_nan=False, default=json_default)
-
-
-def json_default(o: Any) -> Any:
-    """``json.dumps(..., default=json_default)``: numpy scalars and arrays as Python numbers and lists."""
-    try:
-        import numpy as np
-
-        if isinstance(o, np.generic):
-            return o.item()
-        if isinstance(o, np.ndarray):
-            return o.tolist()
-    except ImportError:  # pragma: no cover
-        pass
-    raise TypeError(f"{type(o).__name__} is not JSON serialisable")
-
-
-def summarise(results: Sequence[MeasureResult]) -> dict:
-    """Counts, DBH range and median stage timings of a batch (JSON-serialisable)."""
-    ok = [r for r in results if r.error is None]
-    stages: dict[str, list[float]] = {}
-    for r in results:
-        for k, v in (r.timings_ms or {}).items():
-            stages.setdefault(k, []).append(float(v))
-    dbh = [float(r.dbh_cm) for r in ok]
-    return {
-        "photos": len(results), "measured": len(ok), "failed": len(results) - len(ok),
-        "failed_photos": [r.photo for r in results if r.error is not None],
-        "dbh_cm": ({"min": round(min(dbh), 2), "median": round(statistics.median(dbh), 2),
-                    "max": round(max(dbh), 2)} if dbh else None),
-        "timings_ms_median": {k: round(statistics.median(v), 1) for k, v in stages.items()},
-    }
-
-
-class ResultWriter:
-    """Write batch rows as they come; finish with atomic ``results.jsonl``/``summary.json``.
-
-    Parameters
-    ----------
-    json_stream : text stream, optional
-        Gets one JSON object per line (exactly :data:`RESULT_FIELDS`), flushed per line.
-    csv_path : path, optional
-        CSV with a header of :data:`RESULT_FIELDS`; created (truncated) on open, one row
-        appended and flushed (``fsync``) per result.
-    out_dir : path, optional
-        Folder for ``results.jsonl`` and ``summary.json``, rewritten atomically by
-        :meth:`finish`.
-    meta : dict, optional
-        Extra keys for ``summary.json`` (e.g. the calibration file).
-
-    Use as a context manager; :meth:`add` per result, :meth:`finish` at the end (also on
-    interruption, with ``interrupted=True``).
-    """
-
-    def __init__(self, *, json_stream: Optional[io.TextIOBase] = None,
-                 csv_path: Optional[str | os.PathLike] = None,
-                 out_dir: Optional[str | os.PathLike] = None, meta: Optional[dict] = None) -> None:
-        self.json_stream = json_stream
-        self.out_dir = Path(out_dir) if out_dir else None
-        self.meta = dict(meta or {})
-        self.results: list[MeasureResult] = []
-        self._lines: list[str] = []
-        self._csv_file = None
-        self._csv = None
-        if csv_path:
-            p = Path(csv_path)
-            p.parent.mkdir(parents=True, exist_ok=True)
-            try:
-                self._csv_file = open(p, "w", encoding="utf-8", newline="")
-            except OSError as exc:
-                raise MonodbhError(f"{p}: cannot write CSV ({exc.strerror or exc})") from None
-            self._csv = csv.writer(self._csv_file)
-            self._csv.writerow(RESULT_FIELDS)
-            self._flush_csv()
-        if self.out_dir:
-            self.out_dir.mkdir(parents=True, exist_ok=True)
-
-    def _flush_csv(self) -> None:
-        self._csv_file.flush()
-        try:
-            os.fsync(self._csv_file.fileno())
-        except OSError:  # pragma: no cover - e.g. pipes
-            pass
-
-    def add(self, res: MeasureResult) -> dict:
-        """Write one result everywhere; returns its JSON dict."""
-        d = res.to_json_dict()
-        line = _json_line(d)
-        self.results.append(res)
-        self._lines.append(line)
-        if self.json_stream is not None:
-            self.json_stream.write(line + "\n")
-            self.json_stream.flush()
-        if self._csv is not None:
-            self._csv.writerow(csv_row(d))
-            self._flush_csv()
-        return d
-
-    def finish(self, *, interrupted: bool = False, extra: Optional[dict] = None) -> Optional[dict]:
-        """Close the CSV; write ``results.jsonl`` and ``summary.json`` atomically (out_dir)."""
-        if self._csv_file is not None and not self._csv_file.closed:
-            self._csv_file.close()
-        summary = {**self.meta, **summarise(self.results), "interrupted": interrupted, **(extra or {})}
-        if self.out_dir:
-            atomic_write_text(self.out_dir / "results.jsonl", "".join(s + "\n" for s in self._lines))
-            atomic_write_text(self.out_dir / "summary.json",
-                              json.dumps(summary, indent=1, ensure_ascii=False, default=json_default) + "\n")
-        return summary
-
-    def __enter__(self) -> "ResultWriter":
-        return self
-
-    def __exit__(self, *exc) -> None:
-        if self._csv_file is not None and not self._csv_file.closed:
-            self._csv_file.close()

@@ -6,8 +6,10 @@ Imported by the library's modules; imports only their config classes.
 """
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass, field
 
+from .geometry.config import GeometryConfig
 from .rope.config import RopeConfig
 
 __all__ = ["MeasureConfig"]
@@ -30,11 +32,18 @@ class MeasureConfig:
         (docs/decisions/threads.md); the error model is valid only for the setting it was measured with.
     stem_base_threshold : the stem-base network's probability needed to use its base
         (docs/decisions/stem-base.md).
+    ort_spin : onnxruntime's idle threads spin between work items instead of sleeping (faster
+        alone on a machine, slower beside the rope search on 2 cores; docs/decisions/threads.md).
+        Default: the environment variable ``MONODBH_ORT_SPIN=1``, else off.
     rope : the rope cascade's parameters (:class:`~monodbh.toolkit.rope.config.RopeConfig`).
+    geometry : the geometry's parameters (:class:`~monodbh.toolkit.geometry.config.GeometryConfig`):
+        up direction, stem base, scale candidates and their combination, sigma, DBH.
     """
     work_long_side_px: int = 1600
     rope_full_resolution: bool = True
     overlap_networks: bool = True
     depth_mirror_average: bool = True
     stem_base_threshold: float = 0.3
+    ort_spin: bool = field(default_factory=lambda: os.environ.get("MONODBH_ORT_SPIN", "0") == "1")
     rope: RopeConfig = field(default_factory=RopeConfig)
+    geometry: GeometryConfig = field(default_factory=GeometryConfig)

@@ -49,7 +49,7 @@ class Session:
         self.config = config or MeasureConfig()
         t0 = time.perf_counter()
         nets = load_networks(models_dir, threads=threads, depth_flip_tta=self.config.depth_mirror_average,
-                             stem_base_threshold=self.config.stem_base_threshold)
+                             stem_base_threshold=self.config.stem_base_threshold, spin=self.config.ort_spin)
         self.segmenter = nets.segmenter
         self.depth = nets.depth
         self.trees = nets.tree
@@ -196,7 +196,7 @@ def _measure_frame(path, rgb, camera, req: _Request, sess: Session, tm: dict, fr
                        full_resolution=sess.config.rope_full_resolution, timings=tm)
     silhouette = _TreeSilhouette(sess.trees, frame, stem.tree_mask, tm)
     perc = _perception(frame, choice, stem, ruler, seg.semantic == 1, depth_job, silhouette, sess, req)
-    res = measure_from_perception(perc, str(path), timings=tm)
+    res = measure_from_perception(perc, str(path), timings=tm, config=sess.config.geometry)
     flags = stem.flags + choice.flags + ruler.flags
     if sess.sigma_network is None:
         flags.append("sigma_model_default")     # no error model measured for these networks

@@ -19,7 +19,7 @@ The patch (:func:`band_patch`)
 The output (:class:`RopeVerifier`)
     ``logit`` ``(1, 1)``: log-odds that the band is the rope, from the patch and the stem
     search's own features (``side`` ``(1, N_SIDE)``: :data:`SIDE_FEATURES` of
-    ``monodbh.toolkit.rope.stem_search.band_features``).
+    ``monodbh.toolkit.rope.stem_search.stem_band_features``).
 
 Imported by ``monodbh.toolkit`` and by the rope verifier's modeling and training code (its
 examples are cut with :func:`band_patch`, so train and inference cut identical patches); imports
@@ -44,7 +44,7 @@ __all__ = ["PATCH_H", "PATCH_W", "PATCH_SPAN_W", "SIDE_FEATURES", "N_SIDE", "pat
 PATCH_H: int = 32            #: rows across the band (photo pixels)
 PATCH_W: int = 64            #: columns along the band
 PATCH_SPAN_W: float = 2.0    #: stem widths along the band (the stem fills the middle half)
-#: the stem search's features fed beside the patch (names of ``rope_stem.band_features``)
+#: the stem search's features fed beside the patch (names of ``monodbh.toolkit.rope.stem_search.stem_band_features``)
 SIDE_FEATURES: tuple[str, ...] = ("log_contrast", "log_zpix", "log_zprof", "log_width", "second", "red_shift",
                                   "h_lo", "h_hi", "main", "orange")
 N_SIDE: int = len(SIDE_FEATURES)

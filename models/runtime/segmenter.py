@@ -128,20 +128,41 @@ def panoptic_merge(class_logits: np.ndarray, mask_logits: np.ndarray, size: tupl
         segment id per pixel (0 = none).
     """
     W, H = int(size[0]), int(size[1])
-    if work_max_side and max(W, H) > work_max_side:
-        f = work_max_side / max(W, H)
-        w, h = max(1, int(round(W * f))), max(1, int(round(H * f)))
-    else:
-        w, h = W, H
-    C1 = class_logits.shape[-1]
+    w, h = _work_size(W, H, work_max_side)
     probs = _softmax(class_logits.astype(np.float32))
     labels = probs.argmax(-1)
     scores = probs.max(-1)
-    keep = np.nonzero((labels != C1 - 1) & (scores > score_threshold))[0]
-    segments: list[dict[str, Any]] = []
+    keep = np.nonzero((labels != class_logits.shape[-1] - 1) & (scores > score_threshold))[0]
     if keep.size == 0:
-        return {"segments": segments, "panoptic": np.zeros((H, W), np.int32)}
-    # one pass over kept queries: arg-max of score * prob, the owner's prob, each query's area
+        return {"segments": [], "panoptic": np.zeros((H, W), np.int32)}
+    owner, best_p, orig_area = _owner_pass(mask_logits, keep, scores, (w, h), mask_threshold)
+    valid = (owner >= 0) & (best_p >= mask_threshold)
+    lut, segments = _segment_table(keep, labels, scores, owner, best_p, valid, orig_area,
+                                   thing_classes, overlap_threshold)
+    pan = np.where(valid, lut[owner + 1], 0).astype(np.int32)
+    if (w, h) != (W, H):
+        pan = cv2.resize(pan, (W, H), interpolation=cv2.INTER_NEAREST)
+    return {"segments": segments, "panoptic": pan}
+
+
+def _work_size(W: int, H: int, work_max_side: int | None) -> tuple[int, int]:
+    """(w, h) of the merging grid: (W, H) scaled so its long side is at most ``work_max_side``."""
+    if work_max_side and max(W, H) > work_max_side:
+        f = work_max_side / max(W, H)
+        return max(1, int(round(W * f))), max(1, int(round(H * f)))
+    return W, H
+
+
+def _owner_pass(mask_logits: np.ndarray, keep: np.ndarray, scores: np.ndarray,
+                work_wh: tuple[int, int], mask_threshold: float
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One pass over the kept queries at the working size.
+
+    Returns ``owner`` (h, w) int32, the index into ``keep`` of the query with the highest
+    score * probability (-1 where none), ``best_p`` (h, w) that query's probability, and
+    ``orig_area`` (K,) each query's own mask area before the arg-max.
+    """
+    w, h = work_wh
     best = np.zeros((h, w), np.float32)
     best_p = np.zeros((h, w), np.float32)
     owner = np.full((h, w), -1, np.int32)
@@ -157,11 +178,23 @@ def panoptic_merge(class_logits: np.ndarray, mask_logits: np.ndarray, size: tupl
         best[upd] = v[upd]
         best_p[upd] = p[upd]
         owner[upd] = j
-    valid = (owner >= 0) & (best_p >= mask_threshold)
+    return owner, best_p, orig_area
+
+
+def _segment_table(keep: np.ndarray, labels: np.ndarray, scores: np.ndarray, owner: np.ndarray,
+                   best_p: np.ndarray, valid: np.ndarray, orig_area: np.ndarray,
+                   thing_classes: tuple[int, ...], overlap_threshold: float
+                   ) -> tuple[np.ndarray, list[dict[str, Any]]]:
+    """Segments of the queries that keep enough of their mask; stuff queries merge per class.
+
+    Returns ``lut`` (K + 1,) int32, segment id of owner index ``j`` at ``j + 1`` (0: none), and
+    the segment list of :func:`panoptic_merge`.
+    """
     own_area = np.bincount(owner[owner >= 0], minlength=len(keep))
     final_area = np.bincount(owner[valid], minlength=len(keep))
     prob_sum = np.bincount(owner[valid], weights=best_p[valid], minlength=len(keep))
-    lut = np.zeros(len(keep) + 1, np.int32)  # index j + 1 -> segment id (index 0: owner -1)
+    lut = np.zeros(len(keep) + 1, np.int32)
+    segments: list[dict[str, Any]] = []
     stuff_ids: dict[int, int] = {}
     next_id = 1
     for j, q in enumerate(keep):
@@ -181,10 +214,7 @@ def panoptic_merge(class_logits: np.ndarray, mask_logits: np.ndarray, size: tupl
                          "isthing": isthing, "query": int(q),
                          "mask_prob": float(prob_sum[j] / final_area[j])})
         next_id += 1
-    pan = np.where(valid, lut[owner + 1], 0).astype(np.int32)
-    if (w, h) != (W, H):
-        pan = cv2.resize(pan, (W, H), interpolation=cv2.INTER_NEAREST)
-    return {"segments": segments, "panoptic": pan}
+    return lut, segments
 
 
 class Segmenter(OnnxPredictor):
