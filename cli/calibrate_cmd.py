@@ -249,9 +249,14 @@ def calibrate_pose(
         b = _make_board(board, square, charuco, dictionary, marker, legacy)
         camera = load_camera(calib)
         res = estimate_ground_pose(board_photo, camera, b, board_thickness_m=thickness)
+        from monodbh.calib.marker import read_marker_width_m, write_marker_width
+
         out = output or calib
         fmt = _file_format(calib)
+        marker_m = read_marker_width_m(calib)
         save_camera(res.camera, out, format=fmt)
+        if marker_m is not None:            # the crew's marker stays with the camera
+            write_marker_width(out, marker_m * 1000.0)
         p = res.pose
         con = _console()
         look = "up" if p.pitch_deg > 0 else "down"

@@ -18,6 +18,7 @@ COMMANDS = {
     "synth": ("synth_cmd", "synth"),
     "calibrate": ("calibrate_cmd", "calibrate"),
     "calibrate-pose": ("calibrate_cmd", "calibrate_pose"),
+    "marker": ("marker_cmd", "marker"),
     "measure": ("measure_cmd", "measure"),
     "reconstruct": ("reconstruct_cmd", "reconstruct"),
     "eval": ("eval_cmd", "evaluate"),

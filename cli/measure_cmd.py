@@ -11,7 +11,7 @@ from typing import List, Optional
 
 import typer
 
-__all__ = ["measure", "parse_pick", "load_calib", "fail", "make_backend", "measure_fn_option",
+__all__ = ["retake_hint", "measure", "parse_pick", "load_calib", "fail", "make_backend", "measure_fn_option",
            "session_factory_option"]
 
 
@@ -92,7 +92,7 @@ def _has_attr(module: str, attr: str) -> bool:
         return False
 
 
-def _table(results, console) -> None:
+def _table(results, console, marker_known: bool = False) -> None:
     from rich.table import Table
     from rich.text import Text
 
@@ -119,9 +119,20 @@ def _table(results, console) -> None:
     weak = [r for r in results if not r.error and not any(s in (r.scale_source or "")
                                                            for s in ("stem_base", "pose", "rope_diameter"))]
     if weak:
-        console.print(Text(f"{len(weak)} of {len(results)} measured without the stem base: their scale "
-                           f"comes from the depth network{_network_error_text()}. Where the stem base is in "
-                           "the photo, tap it: dbh measure PHOTO --calib CAM --base X,Y", style="dim"))
+        console.print(Text(retake_hint(len(weak), len(results), marker_known), style="dim"))
+
+
+def retake_hint(n_weak: int, n: int, marker_known: bool) -> str:
+    """What to tell the user when ``n_weak`` of ``n`` photos took their scale from the depth network."""
+    head = (f"{n_weak} of {n} measured with the scale from the depth network{_network_error_text()}, "
+            "neither the stem's foot nor the marker could set it. To measure them better, retake: ")
+    if marker_known:
+        how = ("step back until the stem's foot is in the photo, or closer so that the marker is at "
+               "least 5 px thick")
+    else:
+        how = ("step back until the stem's foot is in the photo, or give the marker's width "
+               "(once: dbh marker CAM --width-mm W; or --rope-mm W)")
+    return head + how + ". Where the foot is in the photo but was not found, tap it: --base X,Y"
 
 
 def _network_error_text() -> str:
@@ -156,10 +167,11 @@ def measure(
                                        "meets the ground (front, middle), one photo only: sets the "
                                        "scale from the rope-to-base geometry (about 10x more accurate "
                                        "than the depth network).", show_default=False),
-    rope_mm: Optional[float] = typer.Option(None, "--rope-mm", min=1.0, max=100.0, help="The rope's true "
-                                            "diameter in mm: where the rope is at least 5 px thick in the "
-                                            "photo, its thickness sets the scale (about 2x more accurate "
-                                            "than the depth network).", show_default=False),
+    rope_mm: Optional[float] = typer.Option(None, "--rope-mm", min=1.0, max=100.0, help="The marker's true "
+                                            "width in mm (rope diameter), for this run: overrides the "
+                                            "camera file's marker_width_mm (set once with dbh marker). "
+                                            "Where the marker is at least 5 px thick in the photo, it sets "
+                                            "the scale.", show_default=False),
     models_dir: Optional[Path] = typer.Option(None, "--models-dir", help="Folder of the ONNX models "
                                               "(default: the shipped ones).", show_default=False),
     measure_fn: Optional[str] = measure_fn_option(),
@@ -183,7 +195,8 @@ def measure(
     if base_xy is not None and len(paths) != 1:
         raise fail(f"--base is a pixel of one photo, but {len(paths)} photos were given", 2)
     stems = unique_stems(paths)
-    rope_m = None if rope_mm is None else rope_mm / 1000.0
+    from .marker_cmd import marker_width_m
+    rope_m, marker_from = marker_width_m(calib, rope_mm)
     jobs = [Job(i, p, camera, pick_xy=pick_xy, base_xy=base_xy, rope_diameter_m=rope_m,
                 out_dir=str(out_dir) if out_dir else None,
                 out_stem=s) for i, (p, s) in enumerate(zip(paths, stems))]
@@ -194,7 +207,9 @@ def measure(
     err_console = Console(stderr=True, soft_wrap=True)
     try:
         writer = ResultWriter(json_stream=sys.stdout if as_json else None, csv_path=csv_out,
-                              out_dir=out_dir, meta={"calib": str(calib), "workers": workers})
+                              out_dir=out_dir, meta={"calib": str(calib), "workers": workers,
+                                    "marker_width_mm": None if rope_m is None else round(rope_m * 1000, 3),
+                                    "marker_width_from": marker_from})
     except MonodbhError as exc:
         raise fail(str(exc))
     interrupted = False
@@ -208,7 +223,7 @@ def measure(
             raise fail(str(exc))
         summary = writer.finish(interrupted=interrupted)
     if not as_json:
-        _table(writer.results, Console())
+        _table(writer.results, Console(), marker_known=rope_m is not None)
     n, bad = summary["photos"], summary["failed"]
     if interrupted:
         err_console.print(f"interrupted after {n} of {len(jobs)} photos", style="yellow")

@@ -100,8 +100,10 @@ def reconstruct(
     kw: dict = {"pick_xy": pick_xy} if pick_xy else {}
     if base_xy:
         kw["base_xy"] = base_xy
-    if rope_mm is not None:
-        kw["rope_diameter_m"] = rope_mm / 1000.0
+    from .marker_cmd import marker_width_m
+    rope_m, _ = marker_width_m(calib, rope_mm)
+    if rope_m is not None:
+        kw["rope_diameter_m"] = rope_m
     res, cloud = _run(backend, photo, camera, kw)
     res = normalise_result(res, photo)
     cloud = to_frame(cloud, frame, camera, photo)

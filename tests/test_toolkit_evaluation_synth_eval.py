@@ -89,3 +89,20 @@ def test_a_bad_record_names_its_file(tmp_path):
     (tmp_path / "000003.json").write_text("{not json")
     with pytest.raises(SampleRecordError, match="000003.json: bad sample record"):
         read_eval_samples(tmp_path, [3])
+
+
+def test_eval_metrics_by_base_view_counts_base_use_and_wrong_bases():
+    def rec(status, src, dist_err, dbh=30.0):
+        return {"gt_dbh_cm": 30.0, "dbh_cm": dbh, "dbh_sigma_cm": 2.0, "error": None, "scale_source": src,
+                "gt_base_status": status, "distance_err_pct": dist_err}
+    recs = [rec("visible", "stem_base+network", 2.0), rec("visible", "network", -20.0, 24.0),
+            rec("occluded", "stem_base_weak", 40.0, 42.0), rec("occluded", "network", 5.0),
+            rec("outside", "stem_base", -16.0), rec("outside", "rope_diameter+network", 3.0),
+            {"gt_dbh_cm": 30.0, "dbh_cm": None, "error": "x: no rope", "gt_base_status": "visible"}]
+    m = eval_metrics(recs)
+    v = m["by_base_view"]
+    assert (v["visible"]["roped"], v["visible"]["measured"], v["visible"]["base_used"]) == (3, 2, 1)
+    assert v["visible"]["wrong_base"] == 0 and v["visible"]["median_abs_distance_err_pct"] == 11.0
+    assert (v["occluded"]["base_used"], v["occluded"]["wrong_base"]) == (1, 1)
+    assert (v["outside"]["base_used"], v["outside"]["wrong_base"]) == (1, 1)
+    assert m["wrong_base"] == 2

@@ -18,11 +18,13 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Optional, Sequence
 
+import numpy as np
+
 from monodbh.calib.errors import MonodbhError
 from monodbh.toolkit.batch import Job
 
 from .synth_samples import camera_from_meta, gt_dbh_cm, gt_rope_px, on_true_rope, true_rope_diameter_m
-from .taps import sample_base_tap, sample_rope_tap
+from .taps import sample_base_tap, sample_rope_tap, true_base_pixel
 
 __all__ = ["EvalSample", "SampleRecordError", "read_eval_samples", "eval_jobs", "eval_record", "eval_report",
            "eval_metrics", "stage_stats", "print_eval", "ROPE_PX_BINS"]
@@ -51,6 +53,11 @@ class EvalSample:
     gt_rope_px : float or None
         The rope's thickness in photo pixels (:func:`.synth_samples.gt_rope_px`); None
         without rope.
+    gt_base_status : str or None
+        Where the roped stem meets the ground in the photo (:func:`.taps.true_base_pixel`):
+        ``"visible"``, ``"occluded"``, ``"outside"``; None without rope or ground truth.
+    gt_distance_m : float or None
+        The roped stem's true horizontal distance at 1.3 m (the record's ``distance_m``).
     """
     index: int
     stem: Path
@@ -58,6 +65,8 @@ class EvalSample:
     camera: Any
     gt_dbh_cm: Optional[float]
     gt_rope_px: Optional[float]
+    gt_base_status: Optional[str] = None
+    gt_distance_m: Optional[float] = None
 
 
 def read_eval_samples(folder: Path, indices: Sequence[int]) -> list[EvalSample]:
@@ -78,8 +87,20 @@ def read_eval_samples(folder: Path, indices: Sequence[int]) -> list[EvalSample]:
         except (OSError, ValueError, KeyError, TypeError, IndexError) as exc:
             raise SampleRecordError(f"{stem.with_suffix('.json')}: bad sample record "
                                     f"({type(exc).__name__}: {exc})") from None
-        out.append(EvalSample(i, stem, meta, cam, gt, gt_rope_px(meta) if gt is not None else None))
+        out.append(EvalSample(i, stem, meta, cam, gt, gt_rope_px(meta) if gt is not None else None,
+                              *(_base_truth(stem, meta) if gt is not None else (None, None))))
     return out
+
+
+def _base_truth(stem: Path, meta: dict) -> tuple[Optional[str], Optional[float]]:
+    """(where the roped stem's base is in the photo, its true distance) of a roped sample."""
+    tree = next((t for t in meta.get("trees", []) if t.get("id") == meta.get("roped_tree")), {})
+    dist = tree.get("distance_m")
+    try:
+        depth = np.load(stem.with_suffix(".npz"))["depth"]
+        return true_base_pixel(meta, depth)[1], dist
+    except (OSError, KeyError, ValueError, TypeError, IndexError, StopIteration):
+        return None, dist           # no ground truth (or no pose in the record) to tell
 
 
 def eval_jobs(samples: Sequence[EvalSample], *, tap_base: bool = False, tap_rope: bool = False,
@@ -120,15 +141,19 @@ def eval_jobs(samples: Sequence[EvalSample], *, tap_base: bool = False, tap_rope
 def eval_record(sample: EvalSample, result: dict) -> dict:
     """One row of the report: the sample's truth joined to its result (``MeasureResult.to_json_dict``).
 
-    Keys ``sample``, ``gt_dbh_cm``, ``gt_rope_px``, ``err_cm`` (measured - true), ``on_true_rope``
+    Keys ``sample``, ``gt_dbh_cm``, ``gt_rope_px``, ``gt_base_status``, ``gt_distance_m``, ``err_cm``
+    (measured - true), ``distance_err_pct`` (measured / true distance - 1, %), ``on_true_rope``
     (:func:`.synth_samples.on_true_rope`, for measured roped samples), then the result's fields.
     """
     gt, d = sample.gt_dbh_cm, result
     on = (on_true_rope(sample.stem, sample.meta, d.get("rope_xy"))
           if gt is not None and d["dbh_cm"] is not None else None)
+    dist_err = (100.0 * (d["distance_m"] / sample.gt_distance_m - 1.0)
+                if d.get("distance_m") is not None and sample.gt_distance_m else None)
     return {"sample": sample.index, "gt_dbh_cm": gt, "gt_rope_px": sample.gt_rope_px,
+            "gt_base_status": sample.gt_base_status, "gt_distance_m": sample.gt_distance_m,
             "err_cm": (d["dbh_cm"] - gt if gt is not None and d["dbh_cm"] is not None else None),
-            "on_true_rope": on, **d}
+            "distance_err_pct": dist_err, "on_true_rope": on, **d}
 
 
 def eval_report(folder: Path, records: Sequence[dict], jobs: Sequence[Job], metrics: dict, stages: dict, *,
@@ -229,7 +254,40 @@ def eval_metrics(records: Sequence[dict]) -> dict:
         "failure_reasons": dict(sorted(reasons.items(), key=lambda kv: -kv[1])),
         "by_scale_source": _by_source(meas),
         "by_rope_px": _by_rope_px(roped),
+        "by_base_view": _by_base_view(roped),
+        "wrong_base": sum(1 for r in meas if _base_led(r) and r.get("gt_base_status") not in (None, "visible")
+                          and abs(r.get("distance_err_pct") or 0.0) > WRONG_BASE_PCT),
     }
+
+
+#: a scale led by a stem base whose distance is off by more than this (%) where the true base is
+#: hidden or out of the photo counts as a wrong base (``wrong_base``)
+WRONG_BASE_PCT = 15.0
+
+
+def _base_led(r: dict) -> bool:
+    return str(r.get("scale_source") or "").split("+")[0].startswith("stem_base")
+
+
+def _by_base_view(roped: Sequence[dict]) -> dict:
+    """Per true base status (visible / occluded / outside): roped, measured, how many took their
+    scale from a stem base, DBH MAE and the median |distance error| (%)."""
+    out = {}
+    for status in ("visible", "occluded", "outside"):
+        rs = [r for r in roped if r.get("gt_base_status") == status]
+        if not rs:
+            continue
+        ms = [r for r in rs if r.get("error") is None and r.get("dbh_cm") is not None]
+        ae = [abs(float(r["dbh_cm"]) - float(r["gt_dbh_cm"])) for r in ms]
+        rel = [a / float(r["gt_dbh_cm"]) * 100.0 for a, r in zip(ae, ms)]
+        de = [abs(r["distance_err_pct"]) for r in ms if r.get("distance_err_pct") is not None]
+        used = [r for r in ms if _base_led(r)]
+        out[status] = {"roped": len(rs), "measured": len(ms), "base_used": len(used),
+                       "mae_cm": statistics.fmean(ae) if ae else None,
+                       "rel_mae_pct": statistics.fmean(rel) if rel else None,
+                       "median_abs_distance_err_pct": statistics.median(de) if de else None,
+                       "wrong_base": sum(1 for r in used if abs(r.get("distance_err_pct") or 0.0) > WRONG_BASE_PCT)}
+    return out
 
 
 def _by_rope_px(roped: Sequence[dict]) -> dict:
@@ -325,6 +383,14 @@ def print_eval(m: dict, stages: dict, console) -> None:
                              [(k, str(v["n"]), _fmt(v["mae_cm"], "{:.2f} cm"), _fmt(v["rel_mae_pct"], "{:.1f} %"),
                                _fmt(v["coverage_2sigma"], pct=True)) for k, v in m["by_scale_source"].items()],
                              left=("source",)))
+    if m.get("by_base_view"):
+        console.print(_table("by the stem base in the photo (ground truth)",
+                             ("base", "roped", "measured", "scale from a base", "base off > 15 %", "MAE",
+                              "relative MAE", "median |distance error|"),
+                             [(k, str(v["roped"]), str(v["measured"]), str(v["base_used"]), str(v["wrong_base"]),
+                               _fmt(v["mae_cm"], "{:.2f} cm"), _fmt(v["rel_mae_pct"], "{:.1f} %"),
+                               _fmt(v["median_abs_distance_err_pct"], "{:.1f} %"))
+                              for k, v in m["by_base_view"].items()], left=("base",)))
     if m.get("by_rope_px"):
         console.print(_table("by rope thickness (photo px)", ("rope", "roped", "measured", "detection rate", "MAE"),
                              [(k, str(v["roped"]), str(v["measured"]), _fmt(v["detection_rate"], pct=True),
