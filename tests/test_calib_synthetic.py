@@ -11,6 +11,7 @@ import pytest
 from typer.testing import CliRunner
 
 from monodbh.calib import Board, Camera, calibrate, load_camera, save_camera
+from monodbh.calib.marker import read_marker_width_m, write_marker_width
 from monodbh.cli.main import app
 
 SIZE = (640, 480)
@@ -203,12 +204,14 @@ def test_calibrate_pose_from_ground_board(tmp_path, rotate):
     cv2.imwrite(str(photo), img)
     cam_path = tmp_path / "cam.yaml"
     save_camera(Camera(K_TRUE, DIST_TRUE, SIZE), cam_path)
+    write_marker_width(cam_path, 10)          # the crew's marker, set before the pose
     r = CliRunner().invoke(app, ["calibrate-pose", str(photo), "--calib", str(cam_path),
                                  "--board", f"{cols}x{rows}", "--square", str(sq), "--json"])
     assert r.exit_code == 0, r.stderr
     assert "camera height" in r.stderr
     pose = load_camera(cam_path).pose
     assert pose is not None
+    assert read_marker_width_m(cam_path) == pytest.approx(0.010)     # kept through the rewrite
     assert abs(pose.height_m - 1.4) < 0.01
     assert abs(pose.pitch_deg - (-30.0)) < 0.2
     assert abs(pose.roll_deg - 2.0) < 0.2
