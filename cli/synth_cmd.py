@@ -30,6 +30,8 @@ def synth(
     workers: int = typer.Option(0, "--workers", "-j", min=0, help="Processes (0 = all cores)."),
     no_distortion: bool = typer.Option(False, "--no-distortion", help="Render through a pinhole camera."),
     contact: bool = typer.Option(False, "--contact-sheet", help="Also write OUT/contact_sheet.png (16 samples)."),
+    marker: str = typer.Option("rope", "--marker", help="The 1.3 m marker: rope (5-15 mm, the default), strap "
+                               "(a flat red strap 20-50 mm wide) or mixed (either)."),
 ) -> None:
     """Render procedural forest scenes with exact ground truth (depth, panoptic labels, rope, z1/z2, DBH)."""
     try:
@@ -40,11 +42,13 @@ def synth(
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeRemainingColumn
 
     W, H = parse_size(size)
+    if marker not in ("rope", "strap", "mixed"):
+        raise typer.BadParameter(f"expected rope, strap or mixed, got {marker!r}", param_hint="--marker")
     with Progress("[progress.description]{task.description}", BarColumn(), MofNCompleteColumn(),
                   TimeRemainingColumn(), transient=True) as prog:
         task = prog.add_task(f"rendering {W}x{H}", total=count)
         res = synthesize(out, count, seed, (W, H), start=start, workers=workers or None,
-                         distortion=not no_distortion, progress=lambda r: prog.advance(task))
+                         distortion=not no_distortion, marker=marker, progress=lambda r: prog.advance(task))
     typer.echo(f"{res['count']} samples in {res['seconds']:.1f} s ({res['samples_per_s']:.2f} samples/s) -> {out}",
                err=True)
     if contact:

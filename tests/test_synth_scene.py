@@ -215,3 +215,29 @@ def test_trees_in_the_picture_keep_full_detail(roped_sample):
         assert _in_view(by_id[r["id"]], scene.camera), r["id"]
     # and some trees were out of view (the proxy saves work in a typical stand)
     assert any(not _in_view(t, scene.camera) for t in scene.trees)
+
+
+def test_a_strap_marker_is_a_wide_flat_red_band_in_the_rope_mask():
+    """``marker="strap"``: the same scene as its rope twin, with a 20-50 mm strap at 1.3 m."""
+    from monodbh.toolkit.evaluation.synth_samples import true_rope_diameter_m
+    for i in range(6):
+        rope = generate_sample(21, i, (320, 240))
+        if rope["meta"]["rope"] is None:
+            continue
+        strap = generate_sample(21, i, (320, 240), marker="strap")
+        m = strap["meta"]["rope"]
+        assert m["kind"] == "strap" and 0.02 <= m["marker_width_m"] <= 0.05
+        assert true_rope_diameter_m(strap["meta"]) == m["marker_width_m"]
+        assert rope["meta"]["rope"]["kind"] == "rope"
+        assert rope["meta"]["rope"]["marker_width_m"] == rope["meta"]["rope"]["tube_diameter_m"]
+        assert [t["dbh_m"] for t in strap["meta"]["trees"]] == [t["dbh_m"] for t in rope["meta"]["trees"]]
+        assert strap["meta"]["cam_height_m"] == rope["meta"]["cam_height_m"]
+        if rope["rope"].sum() > 20:      # a visible marker: the strap covers more rows than the rope
+            assert strap["rope"].sum() > rope["rope"].sum()
+        return
+    raise AssertionError("no roped scene among the first samples")
+
+
+def test_an_unknown_marker_is_refused():
+    with pytest.raises(ValueError, match="marker must be one of"):
+        generate_sample(21, 0, (64, 48), marker="tape")

@@ -85,6 +85,8 @@ def scene_meta(scene: Scene, out: dict) -> dict:
         t = scene.trees[scene.roped_tree - 1]
         r = [x for x in t.rings if x.is_rope][0]
         rope = dict(tree=t.id, height_m=r.s_m, tube_diameter_m=2 * r.tube_radius_m,
+                    kind="strap" if r.width_m > 0 else "rope",
+                    marker_width_m=r.width_m if r.width_m > 0 else 2 * r.tube_radius_m,
                     center_world=t.axis_point(r.s_m).tolist(), rgb=list(r.rgb),
                     pixels=int((out["rope"] & (inst == t.id)).sum()))
     L = scene.light
@@ -100,7 +102,7 @@ def scene_meta(scene: Scene, out: dict) -> dict:
 
 
 def generate_sample(seed: int, index: int = 0, size: tuple[int, int] = (512, 512), *,
-                    distortion: bool = True, aa: bool = True) -> dict:
+                    distortion: bool = True, aa: bool = True, marker: str = "rope") -> dict:
     """Render one sample.
 
     Parameters
@@ -108,6 +110,9 @@ def generate_sample(seed: int, index: int = 0, size: tuple[int, int] = (512, 512
     seed, index : dataset seed and sample index (the pair fixes the sample exactly).
     size : (W, H) in pixels.
     distortion : render through a camera with radial distortion.
+    marker : the 1.3 m marker: ``"rope"`` (a round rope, the default), ``"strap"`` (a flat red
+        strap 20-50 mm wide) or ``"mixed"`` (either, half and half); see
+        :func:`~.scene.sample_scene`.
 
     Returns
     -------
@@ -120,7 +125,7 @@ def generate_sample(seed: int, index: int = 0, size: tuple[int, int] = (512, 512
         raise ValueError(f"image size {W}x{H} is too small (min 16x16)")
     s = sample_seed(seed, index)
     rng = np.random.default_rng(s)
-    scene = sample_scene(rng, W, H, distortion=distortion, seed=s)
+    scene = sample_scene(rng, W, H, distortion=distortion, seed=s, marker=marker)
     out = render_scene(scene, rng)
     out["meta"] = scene_meta(scene, out)
     out["meta"]["dataset_seed"] = int(seed)

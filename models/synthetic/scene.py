@@ -280,8 +280,14 @@ def _tape_color(rng):
     return (r, r * rng.uniform(0.28, 0.5), r * rng.uniform(0.0, 0.03))
 
 
+#: the kinds of 1.3 m marker the generator renders (``sample_scene(marker=...)``)
+MARKERS = ("rope", "strap", "mixed")
+#: a strap's width along the stem (m): flagging tape wound in a few turns or webbing
+STRAP_WIDTH_RANGE_M = (0.02, 0.05)
+
+
 def sample_scene(rng: np.random.Generator, width: int, height: int, *, distortion: bool = True,
-                 seed: int = 0) -> Scene:
+                 seed: int = 0, marker: str = "rope") -> Scene:
     """Sample a random forest scene and a handheld camera looking at a (usually roped) tree.
 
     Parameters
@@ -289,11 +295,17 @@ def sample_scene(rng: np.random.Generator, width: int, height: int, *, distortio
     rng : numpy.random.Generator
     width, height : image size in pixels.
     distortion : give the camera random radial distortion (else a pinhole).
+    marker : the roped tree's marker (:data:`MARKERS`): a round rope 5-15 mm thick, a flat red
+        strap of :data:`STRAP_WIDTH_RANGE_M` (2 mm thick), or either at random. The strap's
+        draws come from their own generator, so a scene differs from its ``"rope"`` twin in the
+        marker only.
 
     Returns
     -------
     Scene
     """
+    if marker not in MARKERS:
+        raise ValueError(f"marker must be one of {MARKERS}, got {marker!r}")
     slope = rng.normal(0, 0.04, 2) * (rng.random() < 0.7)
     waves = np.array([[rng.uniform(0, 0.25), rng.normal(0, 0.15), rng.normal(0, 0.15), rng.uniform(0, 6.3)]
                       for _ in range(3)])
@@ -388,6 +400,11 @@ def sample_scene(rng: np.random.Generator, width: int, height: int, *, distortio
                                width_m=0.0, rgb=_rope_color(rng), is_rope=True,
                                knot=bool(rng.random() < 0.5), knot_theta=float(rng.uniform(0, 2 * np.pi)),
                                tail_len_m=float(rng.uniform(0.05, 0.3))))
+        mrng = np.random.default_rng([int(seed), 1301])
+        if marker == "strap" or (marker == "mixed" and mrng.random() < 0.5):
+            ring = main.rings[-1]
+            ring.width_m = float(mrng.uniform(*STRAP_WIDTH_RANGE_M))
+            ring.tube_radius_m = 0.001
     near = [t for t in trees[1:] if t.lod == 0]
     far = [t for t in trees[1:] if t.lod < 2 and np.hypot(*(t.base[:2] - cam_xy)) > dist_h + 3]
     if near and rng.random() < 0.25:

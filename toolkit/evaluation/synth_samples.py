@@ -99,7 +99,8 @@ def gt_rope_px(meta: dict) -> Optional[float]:
     try:
         tree = next(t for t in meta["trees"] if t["id"] == k)
         z = float(tree["bh_point_cam"][2]) - float(tree["r_bh_m"])
-        return float(meta["K"][0][0]) * float(rope["tube_diameter_m"]) / z if z > 0 else None
+        d = float(rope.get("marker_width_m", rope["tube_diameter_m"]))     # a strap: its width
+        return float(meta["K"][0][0]) * d / z if z > 0 else None
     except (KeyError, StopIteration, TypeError, ValueError, IndexError):
         return None
 
@@ -107,7 +108,8 @@ def gt_rope_px(meta: dict) -> Optional[float]:
 def true_rope_diameter_m(meta: dict) -> float | None:
     """The rope's true diameter (m) in a sample record, as a user gives it with ``dbh measure
     --rope-mm`` (``dbh eval --rope-known``); None for a scene without rope."""
-    d = (meta.get("rope") or {}).get("tube_diameter_m")
+    rope = meta.get("rope") or {}
+    d = rope.get("marker_width_m", rope.get("tube_diameter_m"))      # a strap's width, a rope's diameter
     return None if d is None else float(d)
 
 
