@@ -26,3 +26,37 @@ def test_choice_says_which_detector_and_its_flags():
         "rope_found_by_network", "rope_chosen_by_network"]
     refused = RopeChoice(SimpleNamespace(found=False), refusal=Refusal.WEAK_OFF_TRUNK)
     assert not refused and refused.flags == []
+
+
+class _RefusingView:
+    """A rope finder view that sees no rope anywhere (as the finder sees a wide strap)."""
+
+    def __init__(self):
+        self.looked = 0
+
+    def near(self, xy):
+        self.looked += 1
+        return []
+
+    def whole(self):
+        self.looked += 1
+        return []
+
+
+def test_the_finder_check_refuses_a_band_it_cannot_see_unless_the_marker_is_wide():
+    from monodbh.toolkit.rope.config import RopeConfig
+    from monodbh.toolkit.rope.select import _finder_stage, _State
+
+    class Band(SimpleNamespace):
+        def __bool__(self):
+            return True
+    band = Band(found=True, ambiguous=False, weak=False, center_xy=(100.0, 50.0), thickness_px=12.0,
+                polyline=np.array([[60.0, 50.0], [140.0, 50.0]], np.float32), direction=(1.0, 0.0))
+    cfg = RopeConfig()
+    st, view = _State(band, RopeSource.BAND), _RefusingView()
+    _finder_stage(view, (200, 300), st, None, cfg)                  # a rope-width marker: checked
+    assert view.looked and st.source is None                         # ... and refused
+    st, view = _State(band, RopeSource.BAND), _RefusingView()
+    _finder_stage(view, (200, 300), st, None, cfg, check=False)      # a strap wider than the finder knows
+    assert view.looked == 0 and st.source is RopeSource.BAND and st.rope is band
+    assert cfg.finder_check_max_marker_mm == 15.0

@@ -233,7 +233,8 @@ def _find_rope(path, frame: WorkFrame, seg_job, cell: float, req: _Request, sess
     t = time.perf_counter()
     pick = None if req.pick_xy is None else tuple(float(v) for v in frame.to_work(req.pick_xy))
     choice = select_rope(frame.image, lambda: seg_job.result().instance, cell, pick_xy=pick,
-                         verifier=sess.rope_verifier, finder=sess.rope_finder, config=sess.config.rope)
+                         verifier=sess.rope_verifier, finder=sess.rope_finder, config=sess.config.rope,
+                         marker_width_mm=None if req.rope_diameter_m is None else 1000.0 * req.rope_diameter_m)
     tm.update(choice.timings_ms)
     tm["rope"] = 1000 * (time.perf_counter() - t) - tm["segment"]
     if choice:

@@ -181,12 +181,16 @@ class RopeConfig:
         is that band (on a near stem the band runs far from its middle).
     finder_cross_check : the rope finder checks the classical detectors' rope
         (docs/decisions/rope-finder.md).
+    finder_check_max_marker_mm : the check is skipped when the user's marker is wider than this
+        (mm): the rope finder was trained on 5-15 mm ropes and refuses wide straps
+        (docs/decisions/rope-finder.md).
     band, stem_search, finder : the detectors' own parameters.
     """
     weak_score: float = 0.0
     ambiguity_candidates: int = 4
     pick_near_px: float = 15.0
     finder_cross_check: bool = True
+    finder_check_max_marker_mm: float = 15.0
     band: BandConfig = field(default_factory=BandConfig)
     stem_search: StemSearchConfig = field(default_factory=StemSearchConfig)
     finder: FinderConfig = field(default_factory=FinderConfig)

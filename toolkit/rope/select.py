@@ -202,7 +202,8 @@ class _State:
 
 
 def select_rope(img: np.ndarray, segment: Callable[[], np.ndarray], cell: float, *, pick_xy=None,
-                verifier=None, finder=None, config: RopeConfig | None = None) -> RopeChoice:
+                verifier=None, finder=None, config: RopeConfig | None = None,
+                marker_width_mm: float | None = None) -> RopeChoice:
     """Find the rope to measure in the working image.
 
     Parameters
@@ -215,6 +216,8 @@ def select_rope(img: np.ndarray, segment: Callable[[], np.ndarray], cell: float,
     verifier : the rope verifier network (:class:`~monodbh.models.runtime.rope_verifier.RopeVerifier`) or None.
     finder : the rope finder network (:class:`~monodbh.models.runtime.rope_finder.RopeFinder`) or None.
     config : :class:`RopeConfig` (defaults when None).
+    marker_width_mm : the user's marker width (``--rope-mm`` / the camera file), or None; wider
+        than :attr:`RopeConfig.finder_check_max_marker_mm`, the finder does not check the band.
 
     Returns
     -------
@@ -233,7 +236,8 @@ def select_rope(img: np.ndarray, segment: Callable[[], np.ndarray], cell: float,
                 and distance_to_band(st.rope, pick_xy) > max(cfg.pick_near_px, 2 * cell))
     _stem_search(img, instance, st, pick_xy, off_pick, verifier, cfg)
     if finder is not None:
-        _finder_stage(_FinderView(finder, img, tm), img.shape[:2], st, pick_xy, cfg)
+        wide = marker_width_mm is not None and marker_width_mm > cfg.finder_check_max_marker_mm
+        _finder_stage(_FinderView(finder, img, tm), img.shape[:2], st, pick_xy, cfg, check=not wide)
     return _choice(st, pick_xy, tm)
 
 
@@ -270,15 +274,18 @@ def _stem_search(img, instance, st: _State, pick_xy, off_pick: bool, verifier, c
         st.pick_missed = True       # the nearest band is elsewhere: not what the user tapped
 
 
-def _finder_stage(view: _FinderView, shape, st: _State, pick_xy, cfg) -> None:
-    """The rope finder: where no rope was found (or a tap found none), else as a check."""
+def _finder_stage(view: _FinderView, shape, st: _State, pick_xy, cfg, check: bool = True) -> None:
+    """The rope finder: where no rope was found (or a tap found none), else as a check (unless
+    ``check`` is off)."""
     rope = st.rope
     no_rope = not rope and not rope.ambiguous
     if st.pick_missed or no_rope or (pick_xy is None and st.weak_refused):
         _finder_alone(view, shape, st, pick_xy, cfg)
-    elif cfg.finder_cross_check and pick_xy is None and rope and not st.weak_refused:
+    elif not (cfg.finder_cross_check and check):
+        return
+    elif pick_xy is None and rope and not st.weak_refused:
         _finder_check(view, shape, st, cfg)
-    elif cfg.finder_cross_check and pick_xy is not None and rope and st.source is RopeSource.BAND:
+    elif pick_xy is not None and rope and st.source is RopeSource.BAND:
         _finder_at_tap(view, shape, st, pick_xy, cfg)
 
 
