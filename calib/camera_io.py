@@ -227,7 +227,12 @@ def save_camera(camera: Camera, path: Any, format: str = "opencv") -> None:
     if format not in FORMATS:
         raise ValueError(f"format must be one of {FORMATS}, got {format!r}")
     text = camera_to_opencv_yaml(camera) if format == "opencv" else camera_to_ros_yaml(camera)
-    p = Path(path)
+    _write_text_atomic(Path(path), text)
+
+
+def _write_text_atomic(p: Path, text: str) -> None:
+    """Write ``text`` to ``p`` through a temporary file and a rename (a one-line
+    :class:`CameraFileError` when it cannot be written)."""
     tmp = p.with_name(f".{p.name}.tmp{os.getpid()}")
     try:
         tmp.write_text(text, encoding="utf-8")
@@ -436,6 +441,12 @@ def load_camera(path: Any) -> Camera:
     if not isinstance(path, (str, os.PathLike)):
         raise TypeError(f"path must be a str or os.PathLike, got {type(path).__name__}")
     p = Path(path)
+    return _camera_from_data(_parse(_read_camera_text(p), p), p)
+
+
+def _read_camera_text(p: Path) -> str:
+    """The text of camera file ``p``; a one-line :class:`CameraFileError` when it is missing, a
+    folder, empty, not UTF-8 text or OpenCV XML."""
     if not p.exists():
         raise CameraFileError(f"{p}: no such file")
     if p.is_dir():
@@ -452,4 +463,4 @@ def load_camera(path: Any) -> Camera:
         raise CameraFileError(f"{p}: not a text file (expected YAML)") from None
     if text.lstrip().startswith("<?xml") or text.lstrip().startswith("<opencv_storage"):
         raise CameraFileError(f"{p}: OpenCV XML camera files are not supported; use YAML")
-    return _camera_from_data(_parse(text, p), p)
+    return text

@@ -9,7 +9,6 @@ it for one run. Imported by ``monodbh.cli``; imports :mod:`.camera_io` and :mod:
 from __future__ import annotations
 
 import math
-import os
 import re
 from pathlib import Path
 from typing import Any, Optional
@@ -55,14 +54,10 @@ def read_marker_width_m(path: Any) -> Optional[float]:
     >>> read_marker_width_m("cam.yaml")          # doctest: +SKIP
     0.01
     """
-    from .camera_io import _parse
+    from .camera_io import _parse, _read_camera_text
 
     p = Path(path)
-    try:
-        text = p.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise CameraFileError(f"{p}: cannot read ({exc.strerror or exc})") from None
-    data = _parse(text, p)
+    data = _parse(_read_camera_text(p), p)
     if data.get(MARKER_KEY) is None:
         return None
     return _check_width_mm(data[MARKER_KEY], p) / 1000.0
@@ -86,29 +81,14 @@ def write_marker_width(path: Any, width_mm: Optional[float]) -> None:
     CameraFileError
         The file is missing, not a camera file, or cannot be written; the width is out of range.
     """
-    from .camera_io import _camera_from_data, _parse
+    from .camera_io import _camera_from_data, _parse, _read_camera_text, _write_text_atomic
 
     p = Path(path)
-    try:
-        text = p.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise CameraFileError(f"{p}: cannot read ({exc.strerror or exc})") from None
-    _camera_from_data(_parse(text, p), p)           # a camera file, not any YAML
-    new = _LINE.sub("", text)
+    new = _LINE.sub("", _read_camera_text(p))
     if width_mm is not None:
         w = _check_width_mm(width_mm, p)
         if new and not new.endswith("\n"):
             new += "\n"
         new += f"{MARKER_KEY}: {w:g}\n"
-    if read_back := _parse(new, p):
-        _camera_from_data(read_back, p)
-    tmp = p.with_name(f".{p.name}.tmp{os.getpid()}")
-    try:
-        tmp.write_text(new, encoding="utf-8")
-        os.replace(tmp, p)
-    except OSError as exc:
-        try:
-            tmp.unlink()
-        except OSError:
-            pass
-        raise CameraFileError(f"{p}: cannot write ({exc.strerror or exc})") from None
+    _camera_from_data(_parse(new, p), p)            # still a camera file (and it was one)
+    _write_text_atomic(p, new)

@@ -235,6 +235,7 @@ def eval_metrics(records: Sequence[dict]) -> dict:
 
     def mean(v):
         return statistics.fmean(v) if v else None
+    by_view = _by_base_view(roped)
 
     return {
         "samples": len(records), "roped": len(roped), "no_rope": len(norope), "measured": len(meas),
@@ -254,9 +255,8 @@ def eval_metrics(records: Sequence[dict]) -> dict:
         "failure_reasons": dict(sorted(reasons.items(), key=lambda kv: -kv[1])),
         "by_scale_source": _by_source(meas),
         "by_rope_px": _by_rope_px(roped),
-        "by_base_view": _by_base_view(roped),
-        "wrong_base": sum(1 for r in meas if _base_led(r) and r.get("gt_base_status") not in (None, "visible")
-                          and abs(r.get("distance_err_pct") or 0.0) > WRONG_BASE_PCT),
+        "by_base_view": by_view,
+        "wrong_base": sum(v["wrong_base"] for k, v in by_view.items() if k != "visible"),
     }
 
 
