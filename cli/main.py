@@ -64,4 +64,75 @@ def version() -> None:
 
 
 def main() -> None:
-    app()
+    """``dbh``: run the command; every failure ends as one ``error: ...`` line on stderr.
+
+    Exit status: 0 success, 1 a failure the command reports (bad photo, camera file, output path),
+    2 a usage error (unknown option, bad value: click's own status), 130 interrupted; an
+    exception nobody expected is reported on one line as an internal error, status 3, with no
+    traceback (``MONODBH_TRACEBACK=1`` shows it).
+    """
+    import os
+    import sys
+
+    try:                        # typer >= 0.25 vendors click
+        from typer._click import exceptions as click_exc
+    except ImportError:         # pragma: no cover - older typer on click
+        from click import exceptions as click_exc
+
+    _one_line_warnings()
+    try:
+        rc = app(standalone_mode=False)
+    except click_exc.UsageError as exc:
+        if exc.format_message().strip():        # (empty after the help of a bare 'dbh')
+            hint = f" (see '{exc.ctx.command_path} --help')" if exc.ctx is not None else ""
+            _error(f"{exc.format_message()}{hint}")
+        sys.exit(exc.exit_code)
+    except (typer.Abort, getattr(click_exc, "Abort", typer.Abort)):
+        _error("aborted")
+        sys.exit(130)
+    except click_exc.ClickException as exc:
+        _error(exc.format_message())
+        sys.exit(exc.exit_code)
+    except KeyboardInterrupt:
+        _error("interrupted")
+        sys.exit(130)
+    except Exception as exc:  # noqa: BLE001 - the last net: one line, never a traceback
+        from monodbh.calib.errors import MonodbhError
+
+        if os.environ.get("MONODBH_TRACEBACK"):
+            raise
+        if isinstance(exc, MonodbhError):
+            _error(str(exc))
+            sys.exit(1)
+        _error(f"internal error: {type(exc).__name__}: {exc} (please report it with the command; "
+               f"MONODBH_TRACEBACK=1 shows where)")
+        sys.exit(3)
+    sys.exit(rc if isinstance(rc, int) else 0)
+
+
+def _error(message: str) -> None:
+    import sys
+
+    from monodbh.toolkit.outputs.paths import printable
+
+    text = " ".join(printable(message).split())
+    sys.stderr.write(f"error: {text}\n")
+    sys.stderr.flush()
+
+
+def _one_line_warnings() -> None:
+    """Library warnings (PIL, scikit-image, onnxruntime's Python side) as ``warning: <message>``
+    on one line, without the source line that Python prints by default."""
+    import sys
+    import warnings
+
+    def show(message, category, filename, lineno, file=None, line=None):
+        from monodbh.toolkit.outputs.paths import printable
+
+        out = file or sys.stderr
+        try:
+            out.write(f"warning: {' '.join(printable(message).split())}\n")
+        except (OSError, ValueError):
+            pass
+
+    warnings.showwarning = show

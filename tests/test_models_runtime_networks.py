@@ -88,6 +88,13 @@ def test_optional_and_required_networks(tmp_path):
     assert nets.stem_base is None and nets.rope_verifier is None and nets.rope_finder is None
     # the error model was measured with the stem-base network: without it, stale
     assert nets.error_model_stale
+    man = json.loads((tmp_path / "manifest.json").read_text())
+    man["models"]["stem_base"] = dict(load_manifest()["models"]["stem_base"])
+    (tmp_path / "manifest.json").write_text(json.dumps(man))
+    with pytest.raises(MonodbhError, match=r"stem_base_int8.onnx: model file missing \(listed in"):
+        load_networks(tmp_path, threads=1)   # listed but not copied: never measured without it
+    (tmp_path / "manifest.json").write_text(json.dumps({**man, "models": {k: v for k, v in man["models"].items()
+                                                                          if k != "stem_base"}}))
     (tmp_path / "tree_int8.onnx").unlink()
     with pytest.raises(MonodbhError, match="tree_int8.onnx: model file missing"):
         load_networks(tmp_path, threads=1)
@@ -98,8 +105,12 @@ def test_optional_and_required_networks(tmp_path):
         load_networks(tmp_path, threads=1)
     empty = tmp_path / "empty"
     empty.mkdir()
-    with pytest.raises(MonodbhError, match="manifest.json: no model manifest"):
+    with pytest.raises(MonodbhError, match="empty: no models here"):
         load_networks(empty)
+    with pytest.raises(MonodbhError, match="nothing: no such folder"):
+        load_networks(tmp_path / "nothing")
+    with pytest.raises(MonodbhError, match="manifest.json: not a folder"):
+        load_networks(tmp_path / "manifest.json")
 
 
 def test_session_keeps_its_attributes(tmp_path):

@@ -16,7 +16,8 @@ the stem base (``--base``), ``rope_diameter_m`` only when the user gave the rope
 Guarantees of :func:`run_job` / :func:`iter_results`: one :class:`MeasureResult` per photo, in
 input order, never an exception for a bad photo: a :class:`~monodbh.calib.errors.MonodbhError`
 becomes the row's ``error`` (its one-line message); any other exception becomes
-``"internal error: <ExcType>: <message>"``. ``KeyboardInterrupt`` propagates. A problem with the
+``"<photo>: internal error in stage <stage>: <ExcType>: <message>"`` (the stage where the
+pipeline raised it, when known) and the batch goes on. ``KeyboardInterrupt`` propagates. A problem with the
 function or session themselves (import error, models missing) is raised once as
 :class:`BatchError`, since every photo would fail the same way.
 
@@ -40,7 +41,8 @@ from .result import MeasureResult
 
 __all__ = ["Backend", "Job", "BatchError", "ResultWriter", "DEFAULT_MEASURE", "DEFAULT_SESSION",
            "DEFAULT_RECONSTRUCT", "PHOTO_EXTENSIONS", "load_object", "run_job", "iter_results",
-           "error_result", "normalise_result", "expand_photos", "unique_stems", "csv_row",
+           "error_result", "normalise_result", "expand_photos", "unique_stems", "csv_row", "output_files",
+           "OUTPUT_SUFFIXES",
            "one_line", "summarise", "json_default"]
 
 DEFAULT_MEASURE = "monodbh.toolkit.pipeline:measure_photo"
@@ -182,7 +184,9 @@ def error_result(photo: str, exc: BaseException | str) -> MeasureResult:
     elif isinstance(exc, MonodbhError):
         msg = str(exc) or type(exc).__name__
     else:
-        msg = f"internal error: {type(exc).__name__}: {exc}"
+        stage = getattr(exc, "monodbh_stage", None)
+        msg = (f"{photo}: internal error{f' in stage {stage}' if stage else ''}: "
+               f"{type(exc).__name__}: {exc}")
     return MeasureResult(photo=str(photo), error=one_line(msg))
 
 
@@ -193,7 +197,7 @@ def normalise_result(res: Any, photo: str) -> MeasureResult:
     is set; messages are one line; ``flags`` is a list of str.
     """
     if not isinstance(res, MeasureResult):
-        return error_result(photo, f"internal error: TypeError: measure function returned "
+        return error_result(photo, f"{photo}: internal error: TypeError: measure function returned "
                                    f"{type(res).__name__}, not MeasureResult")
     res.photo = str(photo)
     res.flags = [str(f) for f in (res.flags or [])]
@@ -207,19 +211,30 @@ def normalise_result(res: Any, photo: str) -> MeasureResult:
         bad = res.dbh_cm is None or not math.isfinite(float(res.dbh_cm))
         if bad:
             keep = res.debug
-            res = error_result(photo, f"internal error: no DBH and no error (dbh_cm={res.dbh_cm!r})")
+            res = error_result(photo, f"{photo}: internal error: no DBH and no error (dbh_cm={res.dbh_cm!r})")
             res.debug = keep
     return res
+
+
+#: the side outputs of a photo in ``--out-dir``: ``<stem>_overlay.png`` and ``<stem>_tree.ply``
+OUTPUT_SUFFIXES = ("_overlay.png", "_tree.ply")
+
+
+def output_files(out_dir: str | os.PathLike, stem: str) -> list[Path]:
+    """The overlay and cloud paths of a photo with output ``stem`` in ``out_dir``, their names cut
+    to fit the file system (:func:`~.outputs.paths.fit_name`)."""
+    from .outputs.paths import fit_name
+
+    return [Path(out_dir) / fit_name(stem, sfx) for sfx in OUTPUT_SUFFIXES]
 
 
 def _write_outputs(job: Job, res: MeasureResult) -> None:
     """Overlay PNG and tree PLY of one photo; failures become flags, never exceptions."""
     from .outputs.overlay import write_overlay
 
-    out = Path(job.out_dir)
-    stem = job.out_stem or Path(job.photo).stem
+    overlay_path, cloud_path = output_files(job.out_dir, job.out_stem or Path(job.photo).stem)
     try:
-        write_overlay(out / f"{stem}_overlay.png", res)
+        write_overlay(overlay_path, res)
     except MonodbhError:  # e.g. the photo itself cannot be read: nothing to draw on
         pass
     except Exception:
@@ -229,9 +244,29 @@ def _write_outputs(job: Job, res: MeasureResult) -> None:
         try:
             from .outputs.cloud_io import write_cloud
 
-            write_cloud(out / f"{stem}_tree.ply", cloud)
+            write_cloud(cloud_path, cloud)
         except Exception:
             res.flags.append("cloud_write_failed")
+
+
+def _check_photo_file(photo: str) -> None:
+    """A :class:`~monodbh.calib.errors.PhotoError` unless ``photo`` is a regular file (a FIFO or a
+    device would block or never end)."""
+    from monodbh.calib.errors import PhotoError
+
+    if os.path.isfile(photo):
+        return
+    if os.path.isdir(photo):
+        raise PhotoError(f"{photo}: is a directory, not a photo")
+    if os.path.exists(photo):
+        raise PhotoError(f"{photo}: not a regular file (a pipe, socket or device)")
+    if os.path.islink(photo):
+        try:
+            os.stat(photo)
+        except OSError as exc:
+            if exc.strerror and "symbolic links" in exc.strerror:
+                raise PhotoError(f"{photo}: cannot read ({exc.strerror})") from None
+    raise PhotoError(f"{photo}: no such file")
 
 
 def run_job(job: Job, measure: Callable[..., Any], session: Any = None, *,
@@ -244,11 +279,7 @@ def run_job(job: Job, measure: Callable[..., Any], session: Any = None, *,
     t0 = time.perf_counter()
     want_debug = bool(job.out_dir) or keep_debug
     try:
-        if not os.path.isfile(job.photo):
-            from monodbh.calib.errors import PhotoError
-
-            raise PhotoError(f"{job.photo}: " + ("is a directory, not a photo"
-                                                 if os.path.isdir(job.photo) else "no such file"))
+        _check_photo_file(job.photo)
         kw: dict[str, Any] = dict(pick_xy=job.pick_xy, want_cloud=bool(job.want_cloud or job.out_dir),
                                   want_debug=want_debug, session=session)
         if job.base_xy is not None:
@@ -336,7 +367,7 @@ def iter_results(jobs: Sequence[Job], backend: Backend, *, workers: int = 1,
             try:
                 res = fut.result()
             except BrokenProcessPool:
-                res = error_result(job.photo, "internal error: BrokenProcessPool: a worker process "
+                res = error_result(job.photo, f"{job.photo}: internal error: BrokenProcessPool: a worker process "
                                               "died (out of memory?)")
             except Exception as exc:  # e.g. unpicklable result
                 res = error_result(job.photo, exc)

@@ -108,11 +108,28 @@ def _required(models: dict[str, Any], mdir: Path, kind: str) -> Path:
 
 
 def _optional(models: dict[str, Any], mdir: Path, kind: str) -> Path | None:
-    """The file of an optional network, None when none is shipped (or its file is missing)."""
+    """The file of an optional network, None when none is shipped; a manifest entry whose file is
+    missing is an error (a half-copied models folder must not silently measure without it)."""
     entry = models.get(kind)
-    if entry and (mdir / entry["file"]).exists():
-        return mdir / entry["file"]
-    return None
+    if not entry:
+        return None
+    p = mdir / entry["file"]
+    if not p.exists():
+        raise MonodbhError(f"{p}: model file missing (listed in {mdir / 'manifest.json'})")
+    return p
+
+
+def _models_folder(models_dir: str | Path) -> Path:
+    """``models_dir`` checked: an existing folder (a one-line error otherwise, never the shipped
+    models instead)."""
+    mdir = Path(models_dir)
+    if not str(models_dir).strip():
+        raise MonodbhError("--models-dir is empty (leave it out for the shipped models)")
+    if not mdir.exists():
+        raise MonodbhError(f"{mdir}: no such folder (--models-dir)")
+    if not mdir.is_dir():
+        raise MonodbhError(f"{mdir}: not a folder (--models-dir)")
+    return mdir
 
 
 def load_networks(models_dir: str | Path | None = None, *, threads: int = 2, depth_flip_tta: bool = True,
@@ -145,9 +162,10 @@ def load_networks(models_dir: str | Path | None = None, *, threads: int = 2, dep
         The folder has no manifest, or the segmenter, depth or tree network is not shipped or
         its file is missing.
     """
-    mdir = Path(models_dir) if models_dir else MODELS_DIR
+    mdir = MODELS_DIR if models_dir is None else _models_folder(models_dir)
     if not (mdir / "manifest.json").exists():
-        raise MonodbhError(f"{mdir / 'manifest.json'}: no model manifest")
+        raise MonodbhError(f"{mdir}: no models here (no manifest.json; a models folder holds the "
+                           f"files of 'dbh export --ship')")
     manifest = load_manifest(mdir / "manifest.json")
     models = manifest.get("models", {})
     opts = dict(threads=threads, spin=spin)

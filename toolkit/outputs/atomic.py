@@ -7,8 +7,9 @@ any failure (exceptions and ``KeyboardInterrupt`` alike) the temporary file is r
 error re-raised.
 
 The temporary file comes from :func:`tempfile.mkstemp` (name ``.<target name>.<random>.tmp``,
-mode ``0o600``, the mode the replaced file then has); nothing is ``fsync``-ed. The target's
-folder is created when missing.
+the target's name cut so the temporary name fits the file system); before the rename it gets the
+mode of the file it replaces, or for a new file ``0o666`` less the process's umask, as ``open``
+would give. Nothing is ``fsync``-ed. The target's folder is created when missing.
 
 Imported by the library's writers (``toolkit.batch``, :mod:`.overlay`, :mod:`.cloud_io`) and by
 the evaluation tools; imports only the standard library.
@@ -48,10 +49,11 @@ def atomic_path(path: str | os.PathLike) -> Iterator[str]:
     """
     p = Path(path)
     p.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{p.name}.", suffix=".tmp", dir=p.parent)
+    fd, tmp = tempfile.mkstemp(prefix=_tmp_prefix(p), suffix=".tmp", dir=p.parent)
     os.close(fd)
     try:
         yield tmp
+        _set_mode(tmp, p)
         os.replace(tmp, p)
     except BaseException:
         _remove(tmp)
@@ -82,10 +84,11 @@ def atomic_open(path: str | os.PathLike, mode: str = "w") -> Iterator[IO]:
         raise ValueError(f"mode must be 'w' or 'wb', not {mode!r}")
     p = Path(path)
     p.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{p.name}.", suffix=".tmp", dir=p.parent)
+    fd, tmp = tempfile.mkstemp(prefix=_tmp_prefix(p), suffix=".tmp", dir=p.parent)
     try:
         with (os.fdopen(fd, "w", encoding="utf-8", newline="") if mode == "w" else os.fdopen(fd, "wb")) as f:
             yield f
+        _set_mode(tmp, p)
         os.replace(tmp, p)
     except BaseException:
         _remove(tmp)
@@ -104,6 +107,38 @@ def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
     with atomic_open(path, "wb") as f:
         f.write(data)
     return Path(path)
+
+
+def _tmp_prefix(p: Path) -> str:
+    """``.<name>.`` with the name cut to keep the temporary name (prefix, 8 random characters,
+    ``.tmp``) within 255 bytes."""
+    name = p.name
+    while len(os.fsencode(name)) > 200:
+        name = name[:-1]
+    return f".{name}."
+
+
+def _umask() -> int:
+    """The process's umask (read from ``/proc`` on Linux; elsewhere set and restored)."""
+    try:
+        with open("/proc/self/status", encoding="ascii") as f:
+            for line in f:
+                if line.startswith("Umask:"):
+                    return int(line.split()[1], 8)
+    except (OSError, ValueError):
+        pass
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+def _set_mode(tmp: str, target: Path) -> None:
+    """The mode ``target`` has (when it exists) or a new file would get (``0o666 & ~umask``)."""
+    try:
+        mode = os.stat(target).st_mode & 0o7777
+    except OSError:
+        mode = 0o666 & ~_umask()
+    os.chmod(tmp, mode)
 
 
 def _remove(tmp: str) -> None:

@@ -20,8 +20,9 @@ from monodbh.calib.errors import MonodbhError
 
 from ..result import RESULT_FIELDS, MeasureResult
 from .atomic import atomic_write_text
+from .paths import check_file_target, ensure_folder, printable
 
-__all__ = ["ResultWriter", "csv_row", "json_default", "summarise"]
+__all__ = ["ResultWriter", "csv_row", "json_default", "summarise", "printable_row"]
 
 
 def csv_row(d: dict) -> list[str]:
@@ -36,6 +37,18 @@ def csv_row(d: dict) -> list[str]:
         else:
             cells.append(str(v))
     return cells
+
+
+def printable_row(d: dict) -> dict:
+    """The row's text fields (photo, error, flags) with non-UTF-8 bytes of file names escaped
+    (:func:`~.paths.printable`), so the row can be written as UTF-8 CSV and JSON."""
+    out = dict(d)
+    for k in ("photo", "error", "scale_source"):
+        if isinstance(out.get(k), str):
+            out[k] = printable(out[k])
+    if isinstance(out.get("flags"), list):
+        out["flags"] = [printable(f) for f in out["flags"]]
+    return out
 
 
 def _json_line(d: dict) -> str:
@@ -66,7 +79,7 @@ def summarise(results: Sequence[MeasureResult]) -> dict:
     dbh = [float(r.dbh_cm) for r in ok]
     return {
         "photos": len(results), "measured": len(ok), "failed": len(results) - len(ok),
-        "failed_photos": [r.photo for r in results if r.error is not None],
+        "failed_photos": [printable(r.photo) for r in results if r.error is not None],
         "dbh_cm": ({"min": round(min(dbh), 2), "median": round(statistics.median(dbh), 2),
                     "max": round(max(dbh), 2)} if dbh else None),
         "timings_ms_median": {k: round(statistics.median(v), 1) for k, v in stages.items()},
@@ -98,23 +111,22 @@ class ResultWriter:
                  out_dir: Optional[str | os.PathLike] = None, meta: Optional[dict] = None) -> None:
         self.json_stream = json_stream
         self.out_dir = Path(out_dir) if out_dir else None
-        self.meta = dict(meta or {})
+        self.meta = {k: printable(v) if isinstance(v, str) else v for k, v in (meta or {}).items()}
         self.results: list[MeasureResult] = []
         self._lines: list[str] = []
         self._csv_file = None
         self._csv = None
+        if self.out_dir:
+            ensure_folder(self.out_dir)
         if csv_path:
-            p = Path(csv_path)
-            p.parent.mkdir(parents=True, exist_ok=True)
+            p = check_file_target(csv_path)
             try:
                 self._csv_file = open(p, "w", encoding="utf-8", newline="")
             except OSError as exc:
-                raise MonodbhError(f"{p}: cannot write CSV ({exc.strerror or exc})") from None
+                raise MonodbhError(f"{printable(p)}: cannot write CSV ({exc.strerror or exc})") from None
             self._csv = csv.writer(self._csv_file)
             self._csv.writerow(RESULT_FIELDS)
             self._flush_csv()
-        if self.out_dir:
-            self.out_dir.mkdir(parents=True, exist_ok=True)
 
     def _flush_csv(self) -> None:
         self._csv_file.flush()
@@ -125,7 +137,7 @@ class ResultWriter:
 
     def add(self, res: MeasureResult) -> dict:
         """Write one result everywhere; returns its JSON dict."""
-        d = res.to_json_dict()
+        d = printable_row(res.to_json_dict())
         line = _json_line(d)
         self.results.append(res)
         self._lines.append(line)
