@@ -23,8 +23,10 @@ data}`` mappings mean ROS.
 """
 from __future__ import annotations
 
+import functools
 import math
 import os
+import reprlib
 import time
 from pathlib import Path
 from typing import Any, Optional
@@ -44,6 +46,39 @@ _DT = {"u": np.uint8, "c": np.int8, "w": np.uint16, "s": np.int16, "i": np.int32
 _POSE_KEYS = ("camera_height_m", "pitch_deg", "roll_deg", "R_world_from_camera",
               "t_world_from_camera")
 _WRAP = 71  # OpenCV's YAML emitter wraps flow sequences at this column
+
+# Limits of a plausible camera file, checked by load_camera (why these values:
+# docs/decisions/camera-file-limits.md).
+#: largest camera file read, bytes (a cam.yaml is 1-30 KB); refused before parsing, as
+#: pure-Python YAML parsing takes ~8 s per MB
+MAX_FILE_BYTES = 256_000
+#: deepest YAML nesting (a camera file nests 3 levels: key, matrix, data list)
+MAX_NESTING = 20
+#: longest text value (camera_name, calibration_time, distortion_model)
+MAX_TEXT_CHARS = 256
+#: most rows or columns of one matrix (extrinsic_parameters has one row per view)
+MAX_MATRIX_SIDE = 100_000
+#: image width and height, pixels (a thumbnail to the largest JPEG/TIFF side)
+IMAGE_SIDE_RANGE_PX = (16, 65535)
+#: most pixels of the calibrated image (a 200 Mpx phone sensor, with room)
+MAX_IMAGE_PIXELS = 300_000_000
+#: horizontal and vertical field of view, degrees (phone tele ~15 to ultra-wide ~120)
+FOV_RANGE_DEG = (2.0, 170.0)
+#: fx / fy (square pixels give 1; anamorphic lenses 1.33 to 2)
+FOCAL_RATIO_RANGE = (1.0 / 3.0, 3.0)
+#: largest |skew| K[0, 1] as a fraction of fx (OpenCV calibrates with zero skew)
+MAX_SKEW_RATIO = 0.1
+#: the lens model must reach the image's farthest corner within this angle off axis, degrees
+MAX_RAY_ANGLE_DEG = 85.0
+#: directions and angle steps along which the distortion is checked to be monotonic
+DIST_CHECK_DIRECTIONS = 16
+DIST_CHECK_STEPS = 512
+#: camera_height_m (and t_world_from_camera's z), metres: above the ground, below a tall crown
+CAMERA_HEIGHT_RANGE_M = (0.01, 100.0)
+#: pitch_deg and roll_deg, degrees (the ranges CameraPose's angles come back in)
+PITCH_RANGE_DEG = (-90.0, 90.0)
+ROLL_RANGE_DEG = (-180.0, 180.0)
+_MAX_QUOTE_CHARS = 40  # a value quoted in an error message is cut to this length
 
 
 # ------------------------------------------------------------------------------------------
@@ -252,11 +287,49 @@ class _OpenCVMatrix(dict):
     """Marker for a parsed ``!!opencv-matrix`` mapping."""
 
 
+class _Refused(Exception):
+    """A camera file refused while parsing (message without the path)."""
+
+
+def _short(value: Any) -> str:
+    """A bounded one-line ``repr`` of ``value`` for error messages (never the whole value)."""
+    r = reprlib.Repr()
+    r.maxlevel, r.maxdict, r.maxlist, r.maxtuple, r.maxset = 2, 3, 4, 4, 4
+    r.maxstring, r.maxlong, r.maxother = 30, 20, 30
+    try:
+        text = r.repr(value)
+    except Exception:  # noqa: BLE001 - e.g. an int too long to print
+        text = f"<{type(value).__name__}>"
+    return _cut(text, _MAX_QUOTE_CHARS)
+
+
+def _cut(text: str, n: int) -> str:
+    """``text`` on one line, at most ``n`` characters (``...`` marks a cut)."""
+    text = " ".join(str(text).split())
+    return text if len(text) <= n else text[:n - 3] + "..."
+
+
+@functools.lru_cache(maxsize=1)
 def _yaml_loader():
+    """SafeLoader that reads ``!!opencv-matrix`` and refuses anchors, aliases and deep nesting."""
     import yaml
 
     class Loader(yaml.SafeLoader):
-        pass
+        _depth = 0
+
+        def compose_node(self, parent, index):
+            event = self.peek_event()
+            if isinstance(event, yaml.AliasEvent) or getattr(event, "anchor", None) is not None:
+                raise _Refused(f"YAML aliases are not allowed in camera files "
+                               f"(line {event.start_mark.line + 1})")
+            if self._depth >= MAX_NESTING:
+                raise _Refused(f"YAML nested deeper than {MAX_NESTING} levels "
+                               f"(line {event.start_mark.line + 1})")
+            self._depth += 1
+            try:
+                return super().compose_node(parent, index)
+            finally:
+                self._depth -= 1
 
     def matrix(loader, node):
         return _OpenCVMatrix(loader.construct_mapping(node, deep=True))
@@ -267,6 +340,8 @@ def _yaml_loader():
 
 
 def _parse(text: str, p: Path) -> dict:
+    """The top-level mapping of camera file text (a one-line :class:`CameraFileError` for
+    invalid YAML, anchors/aliases, nesting deeper than :data:`MAX_NESTING`)."""
     import yaml
 
     lines = text.splitlines()
@@ -275,18 +350,60 @@ def _parse(text: str, p: Path) -> dict:
         lines.pop(0)
     try:
         data = yaml.load("\n".join(lines), Loader=_yaml_loader())  # noqa: S506 - SafeLoader subclass
+    except _Refused as exc:
+        raise CameraFileError(f"{p}: {exc}") from None
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f" at line {mark.line + 1}" if mark is not None else ""
-        problem = getattr(exc, "problem", None) or "invalid YAML"
+        problem = _cut(getattr(exc, "problem", None) or "invalid YAML", 80)
         raise CameraFileError(f"{p}: not a valid YAML camera file ({problem}{where})") from None
+    except RecursionError:
+        raise CameraFileError(f"{p}: not a valid YAML camera file (nested too deeply)") from None
+    except (ValueError, OverflowError, TypeError, IndexError, KeyError, AttributeError) as exc:
+        # PyYAML's constructors raise these for e.g. a bad date, a 5000-digit int, "!!float"
+        # with no value, "!!timestamp abc"
+        raise CameraFileError(f"{p}: not a valid YAML camera file (a value cannot be read: "
+                              f"{_cut(exc, 60)})") from None
     if not isinstance(data, dict):
         raise CameraFileError(f"{p}: not a camera file (expected a YAML mapping of keys)")
     return data
 
 
+def _number(v: Any) -> float:
+    """``v`` as a float (a YAML number, or text OpenCV wrote such as ``1e-05``); ValueError or
+    OverflowError otherwise (booleans, containers, long text)."""
+    if isinstance(v, bool) or not isinstance(v, (int, float, str)):
+        raise ValueError
+    if isinstance(v, str) and len(v) > 40:
+        raise ValueError
+    return float(v)
+
+
+def _integer(v: Any) -> int:
+    """``v`` as an int (an integer, or an integral finite float); ValueError otherwise."""
+    if isinstance(v, int) and not isinstance(v, bool):
+        return v
+    f = _number(v)
+    if not math.isfinite(f) or f != int(f):
+        raise ValueError
+    return int(f)
+
+
+def _matrix_count(node: dict, key: str, k: str, p: Path) -> int:
+    try:
+        n = _integer(node[k])
+    except (ValueError, OverflowError):
+        raise CameraFileError(f"{p}: matrix '{key}' has non-numeric rows, cols or data "
+                              f"({k}: {_short(node[k])})") from None
+    if not 0 <= n <= MAX_MATRIX_SIDE:
+        raise CameraFileError(f"{p}: matrix '{key}' has {k}: {_short(n)} (0 to "
+                              f"{MAX_MATRIX_SIDE} accepted)")
+    return n
+
+
 def _matrix(data: dict, key: str, p: Path, required: bool = True) -> Optional[np.ndarray]:
-    """Matrix ``key`` from either an ``!!opencv-matrix`` or a ROS ``{rows, cols, data}``."""
+    """Matrix ``key`` from either an ``!!opencv-matrix`` or a ROS ``{rows, cols, data}``: finite
+    numbers of its type ``dt``, as float64."""
     node = data.get(key)
     if node is None:
         if required:
@@ -297,43 +414,70 @@ def _matrix(data: dict, key: str, p: Path, required: bool = True) -> Optional[np
     for k in ("rows", "cols", "data"):
         if k not in node:
             raise CameraFileError(f"{p}: matrix '{key}' has no '{k}'")
+    rows, cols = _matrix_count(node, key, "rows", p), _matrix_count(node, key, "cols", p)
+    values = node["data"]
+    if not isinstance(values, (list, tuple)):
+        values = [values]
+    dt_text = node.get("dt", "d")
+    dt = _DT.get(dt_text.strip()) if isinstance(dt_text, str) else None
+    if dt is None:
+        raise CameraFileError(f"{p}: matrix '{key}' has unsupported type dt: {_short(dt_text)}")
     try:
-        rows, cols = int(node["rows"]), int(node["cols"])
-        values = node["data"]
-        if not isinstance(values, (list, tuple)):
-            values = [values]
-        dt = _DT.get(str(node.get("dt", "d")).strip(), None)
-        if dt is None:
-            raise CameraFileError(f"{p}: matrix '{key}' has unsupported type dt: {node.get('dt')}")
-        arr = np.array([float(v) for v in values], dtype=np.float64)
-    except CameraFileError:
-        raise
-    except (TypeError, ValueError):
+        arr = np.array([_number(v) for v in values], dtype=np.float64)
+    except (ValueError, OverflowError):
         raise CameraFileError(f"{p}: matrix '{key}' has non-numeric rows, cols or data") from None
-    if rows < 0 or cols < 0 or arr.size != rows * cols:
+    if arr.size != rows * cols:
         raise CameraFileError(f"{p}: matrix '{key}' says {rows}x{cols} but has {arr.size} values")
-    return arr.astype(dt).astype(np.float64).reshape(rows, cols) if dt is not np.float64 \
-        else arr.reshape(rows, cols)
+    if not np.all(np.isfinite(arr)):
+        raise CameraFileError(f"{p}: matrix '{key}' contains NaN or infinity")
+    if dt is np.float64:
+        return arr.reshape(rows, cols)
+    if np.issubdtype(dt, np.integer):
+        info = np.iinfo(dt)
+        if np.any(arr != np.round(arr)) or np.any(arr < info.min) or np.any(arr > info.max):
+            raise CameraFileError(f"{p}: matrix '{key}' holds values that are not of its type "
+                                  f"dt: {dt_text.strip()}")
+    elif np.any(np.abs(arr) > np.finfo(np.float32).max):
+        raise CameraFileError(f"{p}: matrix '{key}' holds values too large for dt: f")
+    return arr.astype(dt).astype(np.float64).reshape(rows, cols)
 
 
 def _scalar(data: dict, key: str, p: Path, kind: type, required: bool = False) -> Any:
+    """Scalar ``key``: an int, a finite float or a short text (``kind``); None when absent."""
     if key not in data or data[key] is None:
         if required:
             raise CameraFileError(f"{p}: missing key '{key}'")
         return None
     v = data[key]
+    if kind is str:
+        return _text(v, key, p)
     try:
-        if kind is int:
-            f = float(v)
-            if f != int(f):
-                raise ValueError
-            return int(f)
-        if kind is float:
-            return float(v)
-        return str(v)
-    except (TypeError, ValueError):
+        out = _integer(v) if kind is int else _number(v)
+    except (ValueError, OverflowError):
         raise CameraFileError(f"{p}: '{key}' must be {'an integer' if kind is int else 'a number'}, "
-                              f"got {v!r}") from None
+                              f"got {_short(v)}") from None
+    if kind is float and not math.isfinite(out):
+        raise CameraFileError(f"{p}: '{key}' must be a finite number, got {_short(v)}")
+    return out
+
+
+def _text(v: Any, key: str, p: Path) -> str:
+    """A text field (a YAML scalar, at most :data:`MAX_TEXT_CHARS` characters); never turns a
+    list or mapping into text."""
+    if isinstance(v, (list, tuple, dict, set, bytes, bytearray)):
+        raise CameraFileError(f"{p}: '{key}' must be text, got a {type(v).__name__}")
+    if isinstance(v, int) and not isinstance(v, bool) and v.bit_length() > 4 * MAX_TEXT_CHARS:
+        raise CameraFileError(f"{p}: '{key}' is longer than {MAX_TEXT_CHARS} characters")
+    s = str(v)
+    if len(s) > MAX_TEXT_CHARS:
+        raise CameraFileError(f"{p}: '{key}' is longer than {MAX_TEXT_CHARS} characters")
+    return s
+
+
+def _in_range(v: float, lo: float, hi: float, key: str, p: Path, unit: str) -> None:
+    if not lo <= v <= hi:
+        raise CameraFileError(f"{p}: '{key}' must be between {lo:g} and {hi:g} {unit}, "
+                              f"got {_short(v)}")
 
 
 def _read_pose(data: dict, p: Path) -> Optional[CameraPose]:
@@ -341,23 +485,101 @@ def _read_pose(data: dict, p: Path) -> Optional[CameraPose]:
         return None
     R = _matrix(data, "R_world_from_camera", p, required=False)
     t = _matrix(data, "t_world_from_camera", p, required=False)
+    angles_needed = R is None and t is None
+    angles = {}
+    for key, (lo, hi), unit in (("camera_height_m", CAMERA_HEIGHT_RANGE_M, "m"),
+                                ("pitch_deg", PITCH_RANGE_DEG, "degrees"),
+                                ("roll_deg", ROLL_RANGE_DEG, "degrees")):
+        v = _scalar(data, key, p, float, required=angles_needed)
+        if v is not None:
+            _in_range(v, lo, hi, key, p, unit)
+        angles[key] = v
     try:
-        if R is not None or t is not None:
-            if R is None or t is None:
-                raise CameraFileError(f"{p}: pose needs both 'R_world_from_camera' and "
-                                      f"'t_world_from_camera'")
-            if R.shape != (3, 3):
-                raise CameraFileError(f"{p}: 'R_world_from_camera' must be 3x3, got "
-                                      f"{R.shape[0]}x{R.shape[1]}")
-            if t.size != 3:
-                raise CameraFileError(f"{p}: 't_world_from_camera' must have 3 values, got {t.size}")
-            return CameraPose(R, t.reshape(3))
-        h = _scalar(data, "camera_height_m", p, float, required=True)
-        pitch = _scalar(data, "pitch_deg", p, float, required=True)
-        roll = _scalar(data, "roll_deg", p, float, required=True)
-        return CameraPose.from_angles(h, pitch, roll)
+        if angles_needed:
+            return CameraPose.from_angles(angles["camera_height_m"], angles["pitch_deg"],
+                                          angles["roll_deg"])
+        if R is None or t is None:
+            raise CameraFileError(f"{p}: pose needs both 'R_world_from_camera' and "
+                                  f"'t_world_from_camera'")
+        if R.shape != (3, 3):
+            raise CameraFileError(f"{p}: 'R_world_from_camera' must be 3x3, got "
+                                  f"{R.shape[0]}x{R.shape[1]}")
+        if t.size != 3:
+            raise CameraFileError(f"{p}: 't_world_from_camera' must have 3 values, got {t.size}")
+        lo, hi = CAMERA_HEIGHT_RANGE_M
+        if not lo <= t.flat[2] <= hi:
+            raise CameraFileError(f"{p}: 't_world_from_camera' puts the camera {_short(t.flat[2])} "
+                                  f"m above the ground ({lo:g} to {hi:g} m accepted)")
+        return CameraPose(R, t.reshape(3))
     except ValueError as exc:
         raise CameraFileError(f"{p}: invalid camera pose ({exc})") from None
+
+
+def _check_image_size(w: int, h: int, p: Path) -> None:
+    """Each side within :data:`IMAGE_SIDE_RANGE_PX`, the area within :data:`MAX_IMAGE_PIXELS`."""
+    lo, hi = IMAGE_SIDE_RANGE_PX
+    for key, v in (("image_width", w), ("image_height", h)):
+        if not lo <= v <= hi:
+            raise CameraFileError(f"{p}: '{key}' must be between {lo} and {hi} pixels, "
+                                  f"got {_short(v)}")
+    if w * h > MAX_IMAGE_PIXELS:
+        raise CameraFileError(f"{p}: image size {w}x{h} is over {MAX_IMAGE_PIXELS / 1e6:g} "
+                              f"megapixels")
+
+
+def _check_camera_matrix(K: np.ndarray, w: int, h: int, p: Path) -> None:
+    """Fields of view in :data:`FOV_RANGE_DEG`, fx/fy in :data:`FOCAL_RATIO_RANGE`, the
+    principal point inside the image, skew under :data:`MAX_SKEW_RATIO` of fx."""
+    fx, fy, cx, cy, skew = K[0, 0], K[1, 1], K[0, 2], K[1, 2], K[0, 1]
+    lo, hi = FOV_RANGE_DEG
+    for side, n, f, name in (("horizontal", w, fx, "fx"), ("vertical", h, fy, "fy")):
+        fov = math.degrees(2.0 * math.atan(n / 2.0 / f))
+        if not lo <= fov <= hi:
+            raise CameraFileError(f"{p}: 'camera_matrix' gives a {side} field of view of {fov:.3g} "
+                                  f"degrees ({name} = {f:.6g} px for {n} px; {lo:g} to {hi:g} "
+                                  f"degrees accepted)")
+    rlo, rhi = FOCAL_RATIO_RANGE
+    if not rlo <= fx / fy <= rhi:
+        raise CameraFileError(f"{p}: 'camera_matrix' has fx/fy = {fx / fy:.3g} ({rlo:.3g} to "
+                              f"{rhi:.3g} accepted)")
+    for name, c, n in (("cx", cx, w), ("cy", cy, h)):
+        if not -0.5 <= c <= n - 0.5:
+            raise CameraFileError(f"{p}: 'camera_matrix' puts the principal point outside the "
+                                  f"image ({name} = {c:.6g}, image {w}x{h})")
+    if abs(skew) > MAX_SKEW_RATIO * fx:
+        raise CameraFileError(f"{p}: 'camera_matrix' skew {skew:.6g} is over "
+                              f"{MAX_SKEW_RATIO:g} fx")
+
+
+def _check_distortion(K: np.ndarray, dist: np.ndarray, w: int, h: int, p: Path) -> None:
+    """The distorted radius grows strictly with the ray's angle until it reaches the image's
+    farthest corner, along :data:`DIST_CHECK_DIRECTIONS` directions and within
+    :data:`MAX_RAY_ANGLE_DEG` off axis (``cv2.projectPoints`` with all coefficients)."""
+    import cv2
+
+    c = np.array([K[0, 2], K[1, 2]])
+    corners = np.array([[-0.5, -0.5], [w - 0.5, -0.5], [-0.5, h - 0.5], [w - 0.5, h - 0.5]])
+    r_corner = float(np.hypot(*(corners - c).T).max())
+    theta = np.linspace(0.0, math.radians(MAX_RAY_ANGLE_DEG), DIST_CHECK_STEPS + 1)
+    rn = np.tan(theta)                                          # undistorted normalized radius
+    phi = np.linspace(0.0, 2.0 * math.pi, DIST_CHECK_DIRECTIONS, endpoint=False)
+    xy = rn[None, :, None] * np.stack([np.cos(phi), np.sin(phi)], -1)[:, None, :]
+    obj = np.concatenate([xy, np.ones(xy.shape[:2] + (1,))], -1).reshape(-1, 1, 3)
+    with np.errstate(all="ignore"):
+        uv, _ = cv2.projectPoints(obj, np.zeros(3), np.zeros(3), K, dist)
+        r = np.hypot(*(uv.reshape(len(phi), len(rn), 2) - c).transpose(2, 0, 1))
+    for row in r:
+        reached = np.flatnonzero(row >= r_corner)
+        end = reached[0] if reached.size else len(row) - 1
+        seg = row[:end + 1]
+        bad = np.flatnonzero(~(np.diff(seg) > 0))               # NaN counts as a fold
+        if bad.size:
+            raise CameraFileError(f"{p}: distortion_coefficients fold back inside the image (the "
+                                  f"lens model is not monotonic beyond r = {rn[bad[0]]:.3g})")
+        if not reached.size:
+            raise CameraFileError(f"{p}: camera_matrix and distortion_coefficients do not reach "
+                                  f"the image corner within {MAX_RAY_ANGLE_DEG:g} degrees off "
+                                  f"axis")
 
 
 def _camera_from_data(data: dict, p: Path) -> Camera:
@@ -368,14 +590,14 @@ def _camera_from_data(data: dict, p: Path) -> Camera:
     w = _scalar(data, "image_width", p, int, required=True)
     h = _scalar(data, "image_height", p, int, required=True)
     if w <= 0 or h <= 0:
-        raise CameraFileError(f"{p}: image size must be positive, got {w}x{h}")
+        raise CameraFileError(f"{p}: image size must be positive, got {_short(w)}x{_short(h)}")
     K = _matrix(data, "camera_matrix", p)
     if K.shape != (3, 3):
         raise CameraFileError(f"{p}: 'camera_matrix' must be 3x3, got {K.shape[0]}x{K.shape[1]}")
     if is_ros:
-        model = str(data.get("distortion_model", "plumb_bob")).strip()
+        model = _text(data.get("distortion_model", "plumb_bob"), "distortion_model", p).strip()
         if model not in ("plumb_bob", "rational_polynomial"):
-            raise CameraFileError(f"{p}: distortion_model '{model}' is not supported "
+            raise CameraFileError(f"{p}: distortion_model {_short(model)} is not supported "
                                   f"(plumb_bob or rational_polynomial)")
     dist = _matrix(data, "distortion_coefficients", p, required=not is_ros)
     if dist is None:
@@ -383,13 +605,14 @@ def _camera_from_data(data: dict, p: Path) -> Camera:
     if min(dist.shape) > 1 or dist.size not in DIST_LENGTHS:
         raise CameraFileError(f"{p}: 'distortion_coefficients' must be a 1xN or Nx1 vector with "
                               f"N in {DIST_LENGTHS}, got {dist.shape[0]}x{dist.shape[1]}")
-    if not (np.all(np.isfinite(K)) and np.all(np.isfinite(dist))):
-        raise CameraFileError(f"{p}: camera matrix or distortion contains NaN or infinity")
     if not (K[0, 0] > 0 and K[1, 1] > 0 and np.allclose(K[2], [0, 0, 1]) and K[1, 0] == 0
             and K[2, 0] == 0):
         raise CameraFileError(f"{p}: 'camera_matrix' is not [[fx, 0, cx], [0, fy, cy], "
                               f"[0, 0, 1]] with positive focal lengths")
     K[2] = (0.0, 0.0, 1.0)
+    _check_image_size(w, h, p)
+    _check_camera_matrix(K, w, h, p)
+    _check_distortion(K, dist.reshape(-1), w, h, p)
     pose = _read_pose(data, p)
     name = _scalar(data, "camera_name", p, str) or "camera"
     info = None
@@ -436,7 +659,12 @@ def load_camera(path: Any) -> Camera:
     Raises
     ------
     CameraFileError
-        Missing/unreadable file, invalid YAML, missing keys, wrong matrix shapes or values.
+        Missing/unreadable file, a file over :data:`MAX_FILE_BYTES`, invalid YAML, YAML anchors
+        or aliases, nesting deeper than :data:`MAX_NESTING`, missing keys, wrong matrix shapes
+        or values, NaN or infinity, or an implausible camera (image size, field of view,
+        principal point, skew, a distortion that folds back inside the image, camera pose out
+        of range: the limits at the top of this module,
+        ``docs/decisions/camera-file-limits.md``).
     """
     if not isinstance(path, (str, os.PathLike)):
         raise TypeError(f"path must be a str or os.PathLike, got {type(path).__name__}")
@@ -446,15 +674,19 @@ def load_camera(path: Any) -> Camera:
 
 def _read_camera_text(p: Path) -> str:
     """The text of camera file ``p``; a one-line :class:`CameraFileError` when it is missing, a
-    folder, empty, not UTF-8 text or OpenCV XML."""
+    folder, empty, over :data:`MAX_FILE_BYTES`, not UTF-8 text or OpenCV XML."""
     if not p.exists():
         raise CameraFileError(f"{p}: no such file")
     if p.is_dir():
         raise CameraFileError(f"{p}: is a directory, not a camera file")
     try:
-        raw = p.read_bytes()
+        with open(p, "rb") as f:
+            raw = f.read(MAX_FILE_BYTES + 1)     # bounded: also for /dev/zero or a growing file
     except OSError as exc:
         raise CameraFileError(f"{p}: cannot read ({exc.strerror or exc})") from None
+    if len(raw) > MAX_FILE_BYTES:
+        raise CameraFileError(f"{p}: file is over {MAX_FILE_BYTES // 1000} KB; not a camera file "
+                              f"(a cam.yaml is a few KB)")
     if not raw.strip():
         raise CameraFileError(f"{p}: file is empty")
     try:
