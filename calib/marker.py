@@ -26,13 +26,15 @@ _LINE = re.compile(rf"^{MARKER_KEY}\s*:.*$\n?", re.M)
 
 
 def _check_width_mm(width_mm: float, p: Path) -> float:
+    from .camera_io import _short
+
     lo, hi = MARKER_WIDTH_RANGE_MM
     try:
         w = float(width_mm)
     except (TypeError, ValueError):
-        raise CameraFileError(f"{p}: '{MARKER_KEY}' must be a number, got {width_mm!r}") from None
+        raise CameraFileError(f"{p}: '{MARKER_KEY}' must be a number, got {_short(width_mm)}") from None
     if not (math.isfinite(w) and lo <= w <= hi):
-        raise CameraFileError(f"{p}: '{MARKER_KEY}' must be between {lo:g} and {hi:g} mm, got {width_mm!r}")
+        raise CameraFileError(f"{p}: '{MARKER_KEY}' must be between {lo:g} and {hi:g} mm, got {_short(width_mm)}")
     return w
 
 

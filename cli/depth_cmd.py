@@ -13,27 +13,41 @@ def depth(
     out_dir: Path = typer.Option(..., "--out-dir", "-o", help="Writes <photo stem>_depth.npy (float32 metres)."),
     models_dir: Optional[Path] = typer.Option(None, "--models-dir", hidden=True),
 ) -> None:
-    """Metric z-depth (metres, float32) at each photo's resolution from the depth network."""
-    from monodbh.calib import load_camera
+    """Metric z-depth (metres, float32) at each photo's resolution from the depth network.
+
+    Exit status: 0 when every photo was done, 1 when some failed (each reported on one line, the
+    others still written), 2 on usage errors (an output that would overwrite an input).
+    """
+    import numpy as np
+
     from monodbh.calib.errors import MonodbhError
-    from monodbh.toolkit.evaluation.depth_eval import photo_depth, write_depth
+    from monodbh.toolkit.batch import error_result
+    from monodbh.toolkit.evaluation.depth_eval import depth_file, photo_depth, write_depth
+    from monodbh.toolkit.outputs.paths import ensure_folder, printable
     from monodbh.toolkit.pipeline import Session
+
+    from .measure_cmd import check_outputs, fail, load_calib
+
+    cam = load_calib(calib)
+    check_outputs([*photos, calib], out_dir=out_dir, planned=[depth_file(out_dir, str(p)) for p in photos])
     try:
-        cam = load_camera(calib)
+        ensure_folder(out_dir, "--out-dir")
         sess = Session(models_dir)
     except MonodbhError as e:
-        typer.echo(f"error: {e}", err=True)
-        raise typer.Exit(1)
+        raise fail(str(e))
     failed = 0
     for p in photos:
         try:
             d, tm = photo_depth(str(p), cam, sess)
             out = write_depth(out_dir, str(p), d)
-            typer.echo(f"{p}: {out} ({d.shape[1]}x{d.shape[0]}, median {float(__import__('numpy').median(d)):.2f} m, "
-                       f"{sum(tm.values()):.0f} ms)", err=True)
+            typer.echo(printable(f"{p}: {out} ({d.shape[1]}x{d.shape[0]}, median {float(np.median(d)):.2f} m, "
+                                 f"{sum(tm.values()):.0f} ms)"), err=True)
         except MonodbhError as e:
             failed += 1
-            typer.echo(f"error: {e}", err=True)
+            fail(str(e) if str(e).startswith(str(p)) else f"{p}: {e}")
+        except Exception as e:  # noqa: BLE001 - reported, and the next photo goes on
+            failed += 1
+            fail(error_result(str(p), e).error)
     raise typer.Exit(1 if failed else 0)
 
 

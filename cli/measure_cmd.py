@@ -11,7 +11,8 @@ from typing import List, Optional
 
 import typer
 
-__all__ = ["retake_hint", "measure", "parse_pick", "load_calib", "fail", "make_backend", "measure_fn_option",
+__all__ = ["retake_hint", "measure", "parse_pick", "load_calib", "fail", "check_outputs", "make_backend",
+           "measure_fn_option",
            "session_factory_option"]
 
 
@@ -39,9 +40,38 @@ def parse_pick(text: Optional[str], option: str = "--pick") -> Optional[tuple[fl
 
 
 def fail(message: str, code: int = 1) -> "typer.Exit":
-    """Print ``error: message`` on stderr and return the Exit to raise."""
-    typer.echo(f"error: {message}", err=True)
+    """Print ``error: message`` on stderr (one line; non-UTF-8 bytes of file names escaped) and
+    return the Exit to raise."""
+    from monodbh.toolkit.outputs.paths import printable
+
+    typer.echo(f"error: {' '.join(printable(message).split())}", err=True)
     return typer.Exit(code)
+
+
+def check_outputs(inputs, named=(), out_dir=None, planned=()) -> None:
+    """Refuse outputs that are inputs, before anything is opened (exit 2): an output file the user
+    named (``named``: ``(option, path)`` pairs such as ``("--csv", path)``) that is one of
+    ``inputs`` (photos, camera file), or a file ``--out-dir`` would write (``planned``) that is.
+
+    Raises
+    ------
+    typer.Exit
+        After printing the one-line error.
+    """
+    from monodbh.toolkit.outputs.paths import check_not_input, first_clash, printable
+
+    from monodbh.calib import MonodbhError
+
+    try:
+        for option, path in named:
+            if path is not None:
+                check_not_input(path, inputs, f"{option} {path}")
+        clash = first_clash(planned, inputs) if out_dir is not None else None
+    except MonodbhError as exc:
+        raise fail(str(exc), 2)
+    if clash:
+        raise fail(f"--out-dir {printable(out_dir)} would overwrite the input {printable(clash[1])} "
+                   f"(as {printable(Path(clash[0]).name)}); choose another folder", 2)
 
 
 def load_calib(path: Path):
@@ -106,13 +136,15 @@ def _table(results, console, marker_known: bool = False) -> None:
     t.add_column("scale", overflow="fold", min_width=10)
     t.add_column("flags / error", overflow="fold", min_width=12)
     t.add_column("time", justify="right", no_wrap=True, min_width=6)
+    from monodbh.toolkit.outputs.paths import printable
+
     for r in results:
         total = (r.timings_ms or {}).get("total")
         tm = f"{total / 1000:.2f} s" if total is not None else ""
         if r.error:
-            t.add_row(r.photo, Text("-", style="red"), "", "", Text(r.error, style="red"), tm)
+            t.add_row(printable(r.photo), Text("-", style="red"), "", "", Text(printable(r.error), style="red"), tm)
         else:
-            t.add_row(r.photo, Text(format_dbh(r.dbh_cm, r.dbh_sigma_cm), style="bold"),
+            t.add_row(printable(r.photo), Text(format_dbh(r.dbh_cm, r.dbh_sigma_cm), style="bold"),
                       f"{r.distance_m:.2f} m" if r.distance_m is not None else "-",
                       r.scale_source or "-", Text(", ".join(r.flags), style="yellow"), tm)
     console.print(t)
@@ -195,6 +227,10 @@ def measure(
     if base_xy is not None and len(paths) != 1:
         raise fail(f"--base is a pixel of one photo, but {len(paths)} photos were given", 2)
     stems = unique_stems(paths)
+    from monodbh.toolkit.batch import output_files
+    planned = ([] if out_dir is None else [out_dir / "results.jsonl", out_dir / "summary.json"]
+               + [f for s in stems for f in output_files(out_dir, s)])
+    check_outputs([*paths, calib], [("--csv", csv_out)], out_dir, planned)
     from .marker_cmd import marker_width_m
     rope_m, marker_from = marker_width_m(calib, rope_mm)
     jobs = [Job(i, p, camera, pick_xy=pick_xy, base_xy=base_xy, rope_diameter_m=rope_m,
@@ -236,6 +272,7 @@ def measure(
 
 def _run(jobs, backend, workers, writer, err_console) -> None:
     from monodbh.toolkit.batch import iter_results
+    from monodbh.toolkit.outputs.paths import printable
 
     if len(jobs) == 1:
         for res in iter_results(jobs, backend, workers=1):
@@ -249,4 +286,4 @@ def _run(jobs, backend, workers, writer, err_console) -> None:
         task = prog.add_task("measuring", total=len(jobs))
         for res in iter_results(jobs, backend, workers=workers):
             writer.add(res)
-            prog.update(task, advance=1, description=Path(res.photo).name)
+            prog.update(task, advance=1, description=printable(Path(res.photo).name))

@@ -94,6 +94,15 @@ def reconstruct(
     from monodbh.toolkit.batch import DEFAULT_RECONSTRUCT, normalise_result
     from monodbh.toolkit.outputs.cloud_io import write_cloud
 
+    from monodbh.toolkit.outputs.paths import check_file_target
+
+    from .measure_cmd import check_outputs
+
+    check_outputs([photo, calib], [("-o", output)])
+    try:
+        check_file_target(output, "-o")
+    except MonodbhError as exc:
+        raise fail(str(exc))
     backend = make_backend(measure_fn, session_factory, models_dir, default_fn=DEFAULT_RECONSTRUCT)
     if not Path(photo).is_file():
         raise fail(f"{photo}: no such file")

@@ -8,6 +8,7 @@ deep nesting, implausible lenses, ...). They are built from the bundled example 
 from __future__ import annotations
 
 import io
+import os
 import shutil
 import struct
 import zlib
@@ -25,7 +26,7 @@ __all__ = ["EXAMPLE_JPG", "EXAMPLE_CAM", "good_photo", "good_camera", "PHOTOS", 
 
 def good_photo(d: Path, name: str | bytes = "tree.jpg") -> Path:
     """A copy of the bundled example photo (1280x960, measurable)."""
-    p = Path(d) / name if isinstance(name, str) else Path(bytes(d) + b"/" + name)
+    p = Path(d) / (name if isinstance(name, str) else os.fsdecode(name))
     shutil.copyfile(EXAMPLE_JPG, p)
     return p
 

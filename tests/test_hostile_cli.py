@@ -128,7 +128,8 @@ def _rel(d: Path, p) -> str:
 
 def measure_args(d: Path, photo, cam=None, *extra) -> list:
     cam = cam or H.good_camera(d)
-    return ["measure", _rel(d, photo), "--calib", _rel(d, cam), *extra]
+    return ["measure", _rel(d, photo), "--calib", _rel(d, cam), *extra,
+            *([] if "--json" in extra else ["--json"])]
 
 
 # photos: each must be refused (or measured) with the photo named
@@ -226,7 +227,7 @@ CAM_EXPECT = {
     "pose_absurd": r"pose_high\.yaml: .*camera_height_m",
     "marker_width_absurd": r"marker_huge\.yaml: .*marker_width_mm",
     "marker_width_text": r"marker_text\.yaml: .*marker_width_mm",
-    "huge_file": r"huge\.yaml: .*(too large|MB|bytes)",
+    "huge_file": r"huge\.yaml: .*(too large|MB|KB|bytes)",
     "directory": r"cam_dir\.yaml: .*directory",
 }
 for _name, _msg in CAM_EXPECT.items():

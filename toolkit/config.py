@@ -35,6 +35,9 @@ class MeasureConfig:
     ort_spin : onnxruntime's idle threads spin between work items instead of sleeping (faster
         alone on a machine, slower beside the rope search on 2 cores; docs/decisions/threads.md).
         Default: the environment variable ``MONODBH_ORT_SPIN=1``, else off.
+    sideways_score_max : a photo whose light comes from a side by more than this
+        (:func:`~monodbh.toolkit.orientation.sideways_score` below it, gray levels) is flagged
+        ``photo_maybe_sideways`` (docs/decisions/sideways-photo.md).
     rope : the rope cascade's parameters (:class:`~monodbh.toolkit.rope.config.RopeConfig`).
     geometry : the geometry's parameters (:class:`~monodbh.toolkit.geometry.config.GeometryConfig`):
         up direction, stem base, scale candidates and their combination, sigma, DBH.
@@ -45,5 +48,6 @@ class MeasureConfig:
     depth_mirror_average: bool = True
     stem_base_threshold: float = 0.3
     ort_spin: bool = field(default_factory=lambda: os.environ.get("MONODBH_ORT_SPIN", "0") == "1")
+    sideways_score_max: float = -50.0
     rope: RopeConfig = field(default_factory=RopeConfig)
     geometry: GeometryConfig = field(default_factory=GeometryConfig)

@@ -14,7 +14,21 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["WorkFrame", "work_frame", "rescale_intrinsics"]
+__all__ = ["WorkFrame", "work_frame", "rescale_intrinsics", "read_photo", "MIN_PHOTO_SIDE_PX"]
+
+#: the shortest side of a photo the measuring path accepts (pixels): below it no trunk, rope or
+#: ground is resolved, and the camera's adaptation to the photo degenerates
+#: (``docs/decisions/photo-limits.md``)
+MIN_PHOTO_SIDE_PX = 64
+
+
+def read_photo(path) -> np.ndarray:
+    """The ``(H, W, 3)`` uint8 RGB photo at ``path`` as the measuring path reads it: upright
+    (EXIF), refused with a one-line :class:`~monodbh.calib.errors.PhotoError` when it is not a
+    photo, is corrupt, too large to decode or under :data:`MIN_PHOTO_SIDE_PX` a side."""
+    from ..calib import load_photo
+
+    return load_photo(path, min_side_px=MIN_PHOTO_SIDE_PX)
 
 
 def rescale_intrinsics(K: np.ndarray, sx: float, sy: float, *, inverse: bool = False) -> np.ndarray:

@@ -23,7 +23,8 @@ import numpy as np
 
 from ..calib.errors import MonodbhError
 from .config import MeasureConfig
-from .frames import WorkFrame, work_frame
+from .frames import WorkFrame, read_photo, work_frame
+from .orientation import sideways_score
 from .geometry import Perception, measure_from_perception
 from .result import MeasureResult, PointCloud
 from .rope.geometry import instance_in_window
@@ -144,19 +145,36 @@ def measure_photo(path: str, camera, *, pick_xy=None, want_cloud: bool = False, 
     >>> res.error is None and 5 < res.dbh_cm < 60
     True
     """
-    from ..calib import load_photo
     tm = {}
     t0 = time.perf_counter()
     try:
-        rgb = load_photo(path)
+        rgb = read_photo(path)
     except MonodbhError as e:
         return MeasureResult(photo=str(path), error=str(e))
     tm["load"] = 1000 * (time.perf_counter() - t0)
     req = _Request(pick_xy, base_xy, rope_diameter_m, want_cloud, want_debug)
     try:
+        _check_taps(path, rgb.shape, req)
         return _measure(path, rgb, camera, req, session or Session(), tm)
     except MonodbhError as e:
-        return MeasureResult(photo=str(path), error=str(e), timings_ms=tm)
+        return MeasureResult(photo=str(path), error=_naming(path, str(e)), timings_ms=tm)
+
+
+def _naming(path, message: str) -> str:
+    """``message`` starting with the photo's path (errors raised below it may not name it)."""
+    return message if message.startswith(str(path)) else f"{path}: {message}"
+
+
+def _check_taps(path, shape, req: _Request) -> None:
+    """The user's taps (``--pick``, ``--base``) must fall inside the ``shape`` (H, W, ...) photo."""
+    h, w = shape[:2]
+    for option, xy in (("--pick", req.pick_xy), ("--base", req.base_xy)):
+        if xy is None:
+            continue
+        x, y = (float(v) for v in xy)
+        if not (np.isfinite(x) and np.isfinite(y) and -0.5 <= x <= w - 0.5 and -0.5 <= y <= h - 0.5):
+            raise MonodbhError(f"{path}: {option} {x:g},{y:g} is outside the {w}x{h} px photo "
+                               f"(pixels from 0,0 at the top left to {w - 1},{h - 1})")
 
 
 def _measure(path, rgb, camera, req: _Request, sess: Session, tm: dict) -> MeasureResult:
@@ -198,6 +216,8 @@ def _measure_frame(path, rgb, camera, req: _Request, sess: Session, tm: dict, fr
     perc = _perception(frame, choice, stem, ruler, seg.semantic == 1, depth_job, silhouette, sess, req)
     res = measure_from_perception(perc, str(path), timings=tm, config=sess.config.geometry)
     flags = stem.flags + choice.flags + ruler.flags
+    if sideways_score(frame.image) < sess.config.sideways_score_max:
+        flags.append("photo_maybe_sideways")    # light from a side: turned 90 degrees without EXIF?
     if sess.sigma_network is None:
         flags.append("sigma_model_default")     # no error model measured for these networks
     res.flags = list(res.flags or []) + flags

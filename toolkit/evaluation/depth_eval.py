@@ -42,13 +42,12 @@ def _to_photo_grid(depth_work: np.ndarray, cam_photo, K_work: np.ndarray, step: 
 def photo_depth(path: str, camera, session) -> tuple[np.ndarray, dict]:
     """Metric z-depth ``(H, W)`` float32 of a photo from the depth network (canonical-camera
     mapping with the calibrated focal length; no rope rescaling). Returns (depth, timings_ms)."""
-    from monodbh.calib import load_photo
     from monodbh.toolkit.config import MeasureConfig
-    from monodbh.toolkit.frames import work_frame
+    from monodbh.toolkit.frames import read_photo, work_frame
 
     tm = {}
     t = time.perf_counter()
-    rgb = load_photo(path)
+    rgb = read_photo(path)
     H, W = rgb.shape[:2]
     cam_photo = camera.for_image(W, H)
     frame = work_frame(rgb, camera, MeasureConfig().work_long_side_px)
@@ -66,6 +65,14 @@ def photo_depth(path: str, camera, session) -> tuple[np.ndarray, dict]:
     return out, tm
 
 
+def depth_file(out_dir: str | Path, photo: str) -> Path:
+    """Where :func:`write_depth` puts the depth of ``photo``: ``<out_dir>/<stem>_depth.npy``
+    (the name cut to fit the file system)."""
+    from monodbh.toolkit.outputs.paths import fit_name
+
+    return Path(out_dir) / fit_name(Path(photo).stem, "_depth.npy")
+
+
 def write_depth(out_dir: str | Path, photo: str, depth: np.ndarray) -> Path:
     """Write ``<photo stem>_depth.npy`` (float32 metres, ``(H, W)``) in ``out_dir`` atomically.
 
@@ -74,9 +81,14 @@ def write_depth(out_dir: str | Path, photo: str, depth: np.ndarray) -> Path:
     Path
         The written file.
     """
-    p = Path(out_dir) / f"{Path(photo).stem}_depth.npy"
-    with atomic_open(p, "wb") as f:
-        np.save(f, depth.astype(np.float32))
+    from monodbh.calib.errors import MonodbhError
+
+    p = depth_file(out_dir, photo)
+    try:
+        with atomic_open(p, "wb") as f:
+            np.save(f, depth.astype(np.float32))
+    except OSError as exc:
+        raise MonodbhError(f"{p}: cannot write ({exc.strerror or exc})") from None
     return p
 
 
