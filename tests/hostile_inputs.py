@@ -212,6 +212,13 @@ def photo_rotated_no_exif(d):
     return p
 
 
+def photo_rotated_ccw_no_exif(d):
+    """The example turned the other way (no rope is found in it)."""
+    p = d / "sideways_ccw.jpg"
+    _example_image().rotate(90, expand=True).save(p, quality=92)
+    return p
+
+
 def photo_png_renamed_jpg(d):
     """A valid PNG of the example with a .jpg name (not hostile: must be measured)."""
     p = d / "really_png.jpg"
@@ -246,7 +253,7 @@ PHOTOS = {f.__name__[len("photo_"):]: f for f in [
     photo_empty, photo_text, photo_html, photo_junk, photo_truncated_jpeg, photo_truncated_png,
     photo_corrupt_middle, photo_header_108mp, photo_png_bomb, photo_png_bad_crc,
     photo_tiff_huge_header, photo_1px, photo_10px, photo_thin_strip, photo_animated_gif,
-    photo_rotated_no_exif, photo_png_renamed_jpg, photo_exif_orientation_garbage, photo_cmyk,
+    photo_rotated_no_exif, photo_rotated_ccw_no_exif, photo_png_renamed_jpg, photo_exif_orientation_garbage, photo_cmyk,
     photo_other_aspect]}
 
 

@@ -180,7 +180,7 @@ def test_unexpected_exception_becomes_row(files):
     r = run([str(boom), files["good"][0], "--calib", files["cam"], "--json"])
     assert r.exit_code == 1
     first, second = json_lines(r.stdout)
-    assert first["error"] == "internal error: RuntimeError: kaput second line" and first["dbh_cm"] is None
+    assert first["error"] == f"{boom}: internal error: RuntimeError: kaput second line" and first["dbh_cm"] is None
     assert second["error"] is None
     assert "Traceback" not in r.output
 

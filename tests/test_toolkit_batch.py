@@ -24,12 +24,12 @@ def ok_fn(path, camera, **kw):
 
 def test_error_result_and_normalise():
     assert error_result("p", PhotoError("p: bad")).error == "p: bad"
-    assert error_result("p", KeyError("k")).error == "internal error: KeyError: 'k'"
+    assert error_result("p", KeyError("k")).error == "p: internal error: KeyError: 'k'"
     r = normalise_result(MeasureResult(photo="x", dbh_cm=20.0, error="line1\n line2"), "p.jpg")
     assert r.photo == "p.jpg" and r.dbh_cm is None and r.error == "line1 line2"
     r = normalise_result(MeasureResult(photo="x"), "p.jpg")
-    assert r.error.startswith("internal error: no DBH")
-    assert normalise_result("nonsense", "p.jpg").error.startswith("internal error: TypeError")
+    assert r.error.startswith("p.jpg: internal error: no DBH")
+    assert normalise_result("nonsense", "p.jpg").error.startswith("p.jpg: internal error: TypeError")
 
 
 def test_run_job_rows(tmp_path):
@@ -39,11 +39,32 @@ def test_run_job_rows(tmp_path):
     rows = [run_job(Job(i, str(tmp_path / n), None), ok_fn) for i, n in enumerate(names)]
     assert rows[0].error is None and rows[0].photo == str(tmp_path / "a.jpg") and "total" in rows[0].timings_ms
     assert rows[1].error.endswith("nope.jpg: not an image")
-    assert rows[2].error == "internal error: ZeroDivisionError: division by zero"
+    assert rows[2].error == f"{tmp_path / 'crash.jpg'}: internal error: ZeroDivisionError: division by zero"
     assert rows[3].error == "a b" and rows[3].dbh_cm is None
     assert rows[4].error.endswith("missing.jpg: no such file")
     for r in rows:  # numpy scalars serialise
         assert list(json.loads(json.dumps(r.to_json_dict()))) == list(RESULT_FIELDS)
+
+
+def library_crash_fn(path, camera, **kw):
+    """A measure function whose photo ``bug.jpg`` hits an unexpected exception inside the library."""
+    if path.endswith("bug.jpg"):
+        from monodbh.toolkit.geometry.fits import normalize
+
+        normalize(None)
+    return MeasureResult(photo=path, dbh_cm=20.0, dbh_sigma_cm=1.0)
+
+
+@pytest.mark.parametrize("workers", [1, 2])
+def test_unexpected_exception_names_photo_and_stage_and_batch_goes_on(tmp_path, workers):
+    for n in ("a.jpg", "bug.jpg", "c.jpg"):
+        (tmp_path / n).write_bytes(b"x")
+    jobs = [Job(i, str(tmp_path / n), None) for i, n in enumerate(["a.jpg", "bug.jpg", "c.jpg"])]
+    rows = list(iter_results(jobs, Backend(measure="test_toolkit_batch:library_crash_fn", session=None),
+                             workers=workers))
+    assert [r.error is None for r in rows] == [True, False, True]
+    assert rows[1].error.startswith(f"{tmp_path / 'bug.jpg'}: internal error in toolkit.geometry.fits:normalize: ")
+    assert rows[2].dbh_cm == 20.0
 
 
 def test_iter_results_serial_order_and_fatal(tmp_path):

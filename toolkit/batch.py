@@ -16,8 +16,8 @@ the stem base (``--base``), ``rope_diameter_m`` only when the user gave the rope
 Guarantees of :func:`run_job` / :func:`iter_results`: one :class:`MeasureResult` per photo, in
 input order, never an exception for a bad photo: a :class:`~monodbh.calib.errors.MonodbhError`
 becomes the row's ``error`` (its one-line message); any other exception becomes
-``"<photo>: internal error in stage <stage>: <ExcType>: <message>"`` (the stage where the
-pipeline raised it, when known) and the batch goes on. ``KeyboardInterrupt`` propagates. A problem with the
+``"<photo>: internal error in <module:function>: <ExcType>: <message>"`` (the innermost
+function of monodbh it was raised in, :func:`stage_of`) and the batch goes on. ``KeyboardInterrupt`` propagates. A problem with the
 function or session themselves (import error, models missing) is raised once as
 :class:`BatchError`, since every photo would fail the same way.
 
@@ -42,7 +42,7 @@ from .result import MeasureResult
 __all__ = ["Backend", "Job", "BatchError", "ResultWriter", "DEFAULT_MEASURE", "DEFAULT_SESSION",
            "DEFAULT_RECONSTRUCT", "PHOTO_EXTENSIONS", "load_object", "run_job", "iter_results",
            "error_result", "normalise_result", "expand_photos", "unique_stems", "csv_row", "output_files",
-           "OUTPUT_SUFFIXES",
+           "OUTPUT_SUFFIXES", "stage_of",
            "one_line", "summarise", "json_default"]
 
 DEFAULT_MEASURE = "monodbh.toolkit.pipeline:measure_photo"
@@ -184,10 +184,39 @@ def error_result(photo: str, exc: BaseException | str) -> MeasureResult:
     elif isinstance(exc, MonodbhError):
         msg = str(exc) or type(exc).__name__
     else:
-        stage = getattr(exc, "monodbh_stage", None)
-        msg = (f"{photo}: internal error{f' in stage {stage}' if stage else ''}: "
+        stage = stage_of(exc)
+        msg = (f"{photo}: internal error{f' in {stage}' if stage else ''}: "
                f"{type(exc).__name__}: {exc}")
     return MeasureResult(photo=str(photo), error=one_line(msg))
+
+
+def stage_of(exc: BaseException) -> Optional[str]:
+    """Where in monodbh ``exc`` was raised: ``"module:function"`` of the innermost frame of its
+    traceback inside the package (e.g. ``"toolkit.rope.finder:knot_band"``), or None."""
+    import traceback
+
+    roots = _package_roots()
+    for fs in reversed(traceback.extract_tb(exc.__traceback__)):
+        try:
+            f = Path(fs.filename).resolve()
+        except (OSError, RuntimeError):
+            continue
+        for name, root in roots:
+            if f.is_relative_to(root):
+                mod = ".".join((name, *f.relative_to(root).with_suffix("").parts)).removesuffix(".__init__")
+                if mod == "toolkit.batch":      # the harness: raised by a measure function outside
+                    return None
+                return f"{mod}:{fs.name}"
+    return None
+
+
+def _package_roots() -> list[tuple[str, Path]]:
+    import monodbh.calib
+    import monodbh.models
+    import monodbh.toolkit
+
+    return [(m.__name__.split(".", 1)[1], Path(m.__path__[0]).resolve())
+            for m in (monodbh.toolkit, monodbh.models, monodbh.calib)]
 
 
 def normalise_result(res: Any, photo: str) -> MeasureResult:

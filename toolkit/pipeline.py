@@ -157,7 +157,12 @@ def measure_photo(path: str, camera, *, pick_xy=None, want_cloud: bool = False, 
         _check_taps(path, rgb.shape, req)
         return _measure(path, rgb, camera, req, session or Session(), tm)
     except MonodbhError as e:
-        return MeasureResult(photo=str(path), error=_naming(path, str(e)), timings_ms=tm)
+        msg = _naming(path, str(e))
+        cfg = session.config if session is not None else MeasureConfig()
+        if "no red rope found" in msg and sideways_score(rgb) < cfg.sideways_score_max:
+            msg += ("; the photo may be on its side (turned 90 degrees with no EXIF orientation): "
+                    "rotate it upright")
+        return MeasureResult(photo=str(path), error=msg, timings_ms=tm)
 
 
 def _naming(path, message: str) -> str:
