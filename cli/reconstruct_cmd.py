@@ -121,7 +121,9 @@ def reconstruct(
     except MonodbhError as exc:
         raise fail(str(exc))
     if as_json:
-        typer.echo(json.dumps(res.to_json_dict(), ensure_ascii=False))
+        from monodbh.toolkit.outputs.results_file import printable_row
+
+        typer.echo(json.dumps(printable_row(res.to_json_dict()), ensure_ascii=False))
     _print_summary(res, cloud, output, frame)
 
 

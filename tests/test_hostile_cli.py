@@ -432,15 +432,18 @@ def _batch_folder(d: Path) -> Path:
 
 
 def _check_batch(d: Path, r: Ran) -> None:
+    from monodbh.toolkit.batch import PHOTO_EXTENSIONS
+
     by = {Path(x["photo"]).name: x for x in r.rows}
-    assert sorted(by) == sorted(os.listdir(d / "batch")), by.keys()
+    given = sorted(n for n in os.listdir(d / "batch") if Path(n).suffix.lower() in PHOTO_EXTENSIONS)
+    assert sorted(by) == given and "animated.gif" not in given, by.keys()   # a folder's photos only
     assert by["a_good.jpg"]["error"] is None and by["z_good.jpg"]["error"] is None
     for name, want in [("corrupt_middle.jpg", "corrupt"), ("one_pixel.png", "too small"),
                        ("notes.jpg", "not an image"), ("truncated.jpg", "truncated"),
                        ("bomb.png", "too large")]:
         err = by[name]["error"] or ""
         assert name in err and want in err, (name, err)
-    assert [Path(x["photo"]).name for x in r.rows] == sorted(os.listdir(d / "batch"))
+    assert [Path(x["photo"]).name for x in r.rows] == given
     csv_lines = (d / "out.csv").read_text().splitlines()
     assert len(csv_lines) == 1 + len(r.rows)
 
@@ -535,3 +538,37 @@ def test_hostile(c: Case, tmp_path: Path) -> None:
 def test_enough_cases() -> None:
     kinds = {c.name.split("-")[0] for c in CASES}
     assert len(CASES) >= 60 and kinds >= {"photo", "camera", "flag", "out", "batch", "depth", "reconstruct"}
+
+
+def main() -> None:
+    """``python tests/test_hostile_cli.py``: every case as a table (exit status, peak memory, the
+    message), and the totals the acceptance asks for."""
+    import tempfile
+
+    worst, failed = 0, []
+    print(f"{'case':42s} {'exit':>4s} {'MiB':>6s}  message")
+    for c in CASES:
+        if c.root_skip and IS_ROOT:
+            continue
+        with tempfile.TemporaryDirectory() as tmp:
+            d = Path(tmp) / "case"
+            d.mkdir()
+            args = c.setup(d)
+            before = snapshot(d)
+            r = run_dbh(args, d, umask=c.umask)
+            try:
+                assert r.code == c.code
+                check_common(r, before, d)
+                if c.check:
+                    c.check(d, r)
+                ok = True
+            except AssertionError:
+                ok, _ = False, failed.append(c.name)
+            msg = (_message_lines(r) or [""])[0]
+            worst = max(worst, r.rss_bytes)
+            print(f"{c.name:42s} {r.code:4d} {r.rss_bytes / 2**20:6.0f}  {'' if ok else 'FAIL '}{msg[:90]}")
+    print(f"{len(CASES)} cases, {len(failed)} failed {failed}; worst peak memory {worst / 2**20:.0f} MiB")
+
+
+if __name__ == "__main__":
+    main()

@@ -48,6 +48,6 @@ class MeasureConfig:
     depth_mirror_average: bool = True
     stem_base_threshold: float = 0.3
     ort_spin: bool = field(default_factory=lambda: os.environ.get("MONODBH_ORT_SPIN", "0") == "1")
-    sideways_score_max: float = -50.0
+    sideways_score_max: float = -60.0
     rope: RopeConfig = field(default_factory=RopeConfig)
     geometry: GeometryConfig = field(default_factory=GeometryConfig)
