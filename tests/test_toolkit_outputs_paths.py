@@ -203,3 +203,24 @@ def test_depth_command_reports_an_unexpected_exception_and_goes_on(tmp_path, mon
     assert r.exit_code == 1, r.output
     assert f"error: {a}: internal error in toolkit.geometry.fits:normalize: " in r.stderr
     assert (tmp_path / "out" / "b_depth.npy").is_file() and not (tmp_path / "out" / "a_depth.npy").exists()
+
+
+def reconstruct_crash(path, camera, **kw):
+    from monodbh.toolkit.geometry.fits import normalize
+
+    normalize(None)
+
+
+def test_reconstruct_reports_an_unexpected_exception_on_one_line(tmp_path):
+    from typer.testing import CliRunner
+
+    from monodbh.cli.main import app
+    from hostile_inputs import good_camera, good_photo
+
+    photo = good_photo(tmp_path)
+    r = CliRunner().invoke(app, ["reconstruct", str(photo), "--calib", str(good_camera(tmp_path)),
+                                 "-o", str(tmp_path / "s.ply"), "--measure-fn",
+                                 "test_toolkit_outputs_paths:reconstruct_crash", "--session-factory", "none"])
+    assert r.exit_code == 1, r.output
+    assert r.stderr.startswith(f"error: {photo}: internal error in toolkit.geometry.fits:normalize: ")
+    assert r.stderr.count("\n") == 1 and not (tmp_path / "s.ply").exists()
