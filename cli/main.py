@@ -20,6 +20,7 @@ COMMANDS = {
     "calibrate-pose": ("calibrate_cmd", "calibrate_pose"),
     "marker": ("marker_cmd", "marker"),
     "measure": ("measure_cmd", "measure"),
+    "summary": ("summary_cmd", "summary"),
     "reconstruct": ("reconstruct_cmd", "reconstruct"),
     "eval": ("eval_cmd", "evaluate"),
     "bench": ("eval_cmd", "bench"),
