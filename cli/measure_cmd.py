@@ -204,6 +204,8 @@ def measure(
                                             "camera file's marker_width_mm (set once with dbh marker). "
                                             "Where the marker is at least 5 px thick in the photo, it sets "
                                             "the scale.", show_default=False),
+    resume: bool = typer.Option(False, "--resume", help="Keep the rows already in --csv (a run that "
+                                "was stopped or killed) and measure only the photos not in it."),
     models_dir: Optional[Path] = typer.Option(None, "--models-dir", help="Folder of the ONNX models "
                                               "(default: the shipped ones).", show_default=False),
     measure_fn: Optional[str] = measure_fn_option(),
@@ -217,6 +219,8 @@ def measure(
 
     pick_xy = parse_pick(pick)
     base_xy = parse_pick(base, "--base")
+    if resume and csv_out is None:
+        raise typer.BadParameter("--resume needs --csv (the results to resume)", param_hint="--resume")
     from monodbh.calib import MonodbhError
     from monodbh.toolkit.batch import Job, ResultWriter, expand_photos, unique_stems
 
@@ -245,9 +249,17 @@ def measure(
         writer = ResultWriter(json_stream=sys.stdout if as_json else None, csv_path=csv_out,
                               out_dir=out_dir, meta={"calib": str(calib), "workers": workers,
                                     "marker_width_mm": None if rope_m is None else round(rope_m * 1000, 3),
-                                    "marker_width_from": marker_from})
+                                    "marker_width_from": marker_from}, resume=resume)
     except MonodbhError as exc:
         raise fail(str(exc))
+    if writer.done:
+        from monodbh.toolkit.outputs.paths import printable
+
+        before = len(jobs)
+        jobs = [j for j in jobs if printable(j.photo) not in writer.done]
+        err_console.print(f"{before - len(jobs)} of {before} photos already in {printable(csv_out)}: "
+                          f"kept (--resume)", highlight=False)
+    n_photos = len(paths)
     interrupted = False
     with writer:
         try:
@@ -262,7 +274,7 @@ def measure(
         _table(writer.results, Console(), marker_known=rope_m is not None)
     n, bad = summary["photos"], summary["failed"]
     if interrupted:
-        err_console.print(f"interrupted after {n} of {len(jobs)} photos", style="yellow")
+        err_console.print(f"interrupted after {n} of {n_photos} photos", style="yellow")
         raise typer.Exit(130)
     if len(jobs) > 1 or bad:
         err_console.print(f"{n - bad} of {n} photos measured" + (f", {bad} failed" if bad else ""),

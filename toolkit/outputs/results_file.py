@@ -22,7 +22,7 @@ from ..result import RESULT_FIELDS, MeasureResult
 from .atomic import atomic_write_text
 from .paths import check_file_target, ensure_folder, printable
 
-__all__ = ["ResultWriter", "csv_row", "json_default", "summarise", "printable_row"]
+__all__ = ["ResultWriter", "csv_row", "row_from_csv", "json_default", "summarise", "printable_row"]
 
 
 def csv_row(d: dict) -> list[str]:
@@ -37,6 +37,64 @@ def csv_row(d: dict) -> list[str]:
         else:
             cells.append(str(v))
     return cells
+
+
+_JSON_CELLS = ("flags", "timings_ms", "estimates_cm", "rope_xy")
+_FLOAT_CELLS = ("dbh_cm", "dbh_sigma_cm", "distance_m")
+
+
+def row_from_csv(cells: Sequence[str]) -> dict:
+    """The JSON dict of a CSV row written by :func:`csv_row` (the inverse: empty -> None, JSON
+    cells parsed, numbers as numbers).
+
+    Raises
+    ------
+    ValueError
+        A cell that is not what :func:`csv_row` writes.
+    """
+    d = dict(zip(RESULT_FIELDS, cells))
+    out: dict[str, Any] = {}
+    for k in RESULT_FIELDS:
+        v = d.get(k, "")
+        if v == "":
+            out[k] = [] if k == "flags" else ({} if k in ("timings_ms", "estimates_cm") else None)
+        elif k in _JSON_CELLS:
+            out[k] = json.loads(v)
+        elif k in _FLOAT_CELLS:
+            out[k] = float(v)
+        elif k == "tree_id":
+            out[k] = int(v)
+        else:
+            out[k] = v
+    return out
+
+
+def _read_kept_rows(p: Path) -> list[dict]:
+    """The rows of results CSV ``p`` (a line cut by a killed run is removed from the file)."""
+    try:
+        raw = p.read_bytes()
+    except OSError as exc:
+        raise MonodbhError(f"{printable(p)}: cannot read CSV to resume ({exc.strerror or exc})") from None
+    if raw and not raw.endswith(b"\n"):
+        raw = raw[:raw.rfind(b"\n") + 1]          # the row in flight when the run was killed
+        with open(p, "r+b") as f:
+            f.truncate(len(raw))
+    try:
+        rows = list(csv.reader(io.StringIO(raw.decode("utf-8"), newline="")))
+    except (UnicodeDecodeError, csv.Error) as exc:
+        raise MonodbhError(f"{printable(p)}: not a results CSV to resume ({exc})") from None
+    if not rows:
+        return []
+    if tuple(rows[0]) != RESULT_FIELDS:
+        raise MonodbhError(f"{printable(p)}: not a results CSV of this version (its columns differ); "
+                           f"give another --csv to resume into, or leave out --resume")
+    kept = []
+    for n, cells in enumerate(rows[1:], start=2):
+        try:
+            kept.append(row_from_csv(cells))
+        except ValueError:
+            raise MonodbhError(f"{printable(p)}: row {n} is not a results row; cannot resume") from None
+    return kept
 
 
 def printable_row(d: dict) -> dict:
@@ -101,6 +159,10 @@ class ResultWriter:
         :meth:`finish`.
     meta : dict, optional
         Extra keys for ``summary.json`` (e.g. the calibration file).
+    resume : bool
+        Keep the rows ``csv_path`` already holds (:attr:`done`: photo -> row) and append to it
+        instead of truncating it; a last line cut by a killed run is dropped. The CSV must have
+        this version's header. The kept rows count in ``results.jsonl`` and ``summary.json``.
 
     Use as a context manager; :meth:`add` per result, :meth:`finish` at the end (also on
     interruption, with ``interrupted=True``).
@@ -108,8 +170,11 @@ class ResultWriter:
 
     def __init__(self, *, json_stream: Optional[io.TextIOBase] = None,
                  csv_path: Optional[str | os.PathLike] = None,
-                 out_dir: Optional[str | os.PathLike] = None, meta: Optional[dict] = None) -> None:
+                 out_dir: Optional[str | os.PathLike] = None, meta: Optional[dict] = None,
+                 resume: bool = False) -> None:
         self.json_stream = json_stream
+        #: photo (as written in the CSV) -> its row, of the rows kept by ``resume``
+        self.done: dict[str, dict] = {}
         self.out_dir = Path(out_dir) if out_dir else None
         self.meta = {k: printable(v) if isinstance(v, str) else v for k, v in (meta or {}).items()}
         self.results: list[MeasureResult] = []
@@ -120,12 +185,19 @@ class ResultWriter:
             ensure_folder(self.out_dir)
         if csv_path:
             p = check_file_target(csv_path)
+            kept = _read_kept_rows(p) if resume and p.exists() else None
             try:
-                self._csv_file = open(p, "w", encoding="utf-8", newline="")
+                self._csv_file = open(p, "w" if kept is None else "a", encoding="utf-8", newline="")
             except OSError as exc:
                 raise MonodbhError(f"{printable(p)}: cannot write CSV ({exc.strerror or exc})") from None
             self._csv = csv.writer(self._csv_file)
-            self._csv.writerow(RESULT_FIELDS)
+            if kept is None:
+                self._csv.writerow(RESULT_FIELDS)
+            else:
+                for d in kept:
+                    self.done[d["photo"]] = d
+                    self.results.append(MeasureResult(**d))
+                    self._lines.append(_json_line(d))
             self._flush_csv()
 
     def _flush_csv(self) -> None:
