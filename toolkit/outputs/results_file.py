@@ -4,7 +4,8 @@
 is measured: a JSON line on a stream (flushed per line), a CSV row appended and flushed
 (``fsync``) per photo, and with an output folder ``results.jsonl`` and ``summary.json``
 rewritten atomically (:mod:`.atomic`) at the end, so an interrupted batch loses nothing
-already measured. Imported by ``monodbh.toolkit.batch`` and the CLI.
+already measured; with a GeoJSON path, the trees with a position (:mod:`.geo`) rewritten
+atomically whenever a row adds one, and at the end. Imported by ``monodbh.toolkit.batch`` and the CLI.
 """
 from __future__ import annotations
 
@@ -40,10 +41,10 @@ def csv_row(d: dict) -> list[str]:
 
 
 def printable_row(d: dict) -> dict:
-    """The row's text fields (photo, error, flags) with non-UTF-8 bytes of file names escaped
+    """The row's text fields (photo, error, flags, tag) with non-UTF-8 bytes of file names escaped
     (:func:`~.paths.printable`), so the row can be written as UTF-8 CSV and JSON."""
     out = dict(d)
-    for k in ("photo", "error", "scale_source"):
+    for k in ("photo", "error", "scale_source", "tag"):
         if isinstance(out.get(k), str):
             out[k] = printable(out[k])
     if isinstance(out.get("flags"), list):
@@ -101,6 +102,10 @@ class ResultWriter:
         :meth:`finish`.
     meta : dict, optional
         Extra keys for ``summary.json`` (e.g. the calibration file).
+    geojson_path : path, optional
+        RFC 7946 FeatureCollection of the rows with a tree position
+        (:func:`~.geo.write_geojson`): written (empty) on open, rewritten atomically after each
+        row that adds a tree and by :meth:`finish`.
 
     Use as a context manager; :meth:`add` per result, :meth:`finish` at the end (also on
     interruption, with ``interrupted=True``).
@@ -108,12 +113,15 @@ class ResultWriter:
 
     def __init__(self, *, json_stream: Optional[io.TextIOBase] = None,
                  csv_path: Optional[str | os.PathLike] = None,
-                 out_dir: Optional[str | os.PathLike] = None, meta: Optional[dict] = None) -> None:
+                 out_dir: Optional[str | os.PathLike] = None, meta: Optional[dict] = None,
+                 geojson_path: Optional[str | os.PathLike] = None) -> None:
         self.json_stream = json_stream
         self.out_dir = Path(out_dir) if out_dir else None
         self.meta = {k: printable(v) if isinstance(v, str) else v for k, v in (meta or {}).items()}
         self.results: list[MeasureResult] = []
         self._lines: list[str] = []
+        self._rows: list[dict] = []
+        self._geojson: Optional[Path] = None
         self._csv_file = None
         self._csv = None
         if self.out_dir:
@@ -127,6 +135,18 @@ class ResultWriter:
             self._csv = csv.writer(self._csv_file)
             self._csv.writerow(RESULT_FIELDS)
             self._flush_csv()
+        if geojson_path:
+            self._geojson = check_file_target(geojson_path, "--geojson")
+            self._write_geojson()
+
+    def _write_geojson(self) -> None:
+        from .geo import write_geojson
+
+        try:
+            write_geojson(self._geojson, self._rows)
+        except OSError as exc:
+            raise MonodbhError(f"{printable(self._geojson)}: cannot write GeoJSON "
+                               f"({exc.strerror or exc})") from None
 
     def _flush_csv(self) -> None:
         self._csv_file.flush()
@@ -147,6 +167,12 @@ class ResultWriter:
         if self._csv is not None:
             self._csv.writerow(csv_row(d))
             self._flush_csv()
+        self._rows.append(d)
+        if self._geojson is not None and d.get("tree_lat_deg") is not None and not d.get("error"):
+            try:
+                self._write_geojson()
+            except MonodbhError:  # e.g. disk full: the batch goes on, finish() tries again and says so
+                pass
         return d
 
     def finish(self, *, interrupted: bool = False, extra: Optional[dict] = None) -> Optional[dict]:
@@ -154,6 +180,8 @@ class ResultWriter:
         if self._csv_file is not None and not self._csv_file.closed:
             self._csv_file.close()
         summary = {**self.meta, **summarise(self.results), "interrupted": interrupted, **(extra or {})}
+        if self._geojson is not None:
+            self._write_geojson()
         if self.out_dir:
             atomic_write_text(self.out_dir / "results.jsonl", "".join(s + "\n" for s in self._lines))
             atomic_write_text(self.out_dir / "summary.json",
