@@ -11,7 +11,8 @@ from typing import List, Optional
 
 import typer
 
-__all__ = ["retake_hint", "measure", "parse_pick", "load_calib", "fail", "check_outputs", "make_backend",
+__all__ = ["retake_hint", "measure", "parse_pick", "parse_tag_pattern", "load_calib", "fail", "check_outputs",
+           "make_backend",
            "measure_fn_option",
            "session_factory_option"]
 
@@ -37,6 +38,25 @@ def parse_pick(text: Optional[str], option: str = "--pick") -> Optional[tuple[fl
         raise typer.BadParameter(f"pixel coordinates must be finite and >= 0, got {text!r}",
                                  param_hint=option)
     return x, y
+
+
+def parse_tag_pattern(text: Optional[str]) -> Optional[str]:
+    """``--tag-from`` checked: a regular expression Python compiles, or None.
+
+    Raises
+    ------
+    typer.BadParameter
+        Not a valid regular expression.
+    """
+    import re
+
+    if text is None:
+        return None
+    try:
+        re.compile(text)
+    except re.error as exc:
+        raise typer.BadParameter(f"not a regular expression ({exc})", param_hint="--tag-from")
+    return text
 
 
 def fail(message: str, code: int = 1) -> "typer.Exit":
@@ -208,6 +228,13 @@ def measure(
                                 "was stopped or killed) and measure only the photos not in it."),
     models_dir: Optional[Path] = typer.Option(None, "--models-dir", help="Folder of the ONNX models "
                                               "(default: the shipped ones).", show_default=False),
+    geojson: Optional[Path] = typer.Option(None, "--geojson", help="Also write the trees' positions "
+                                           "(from the photos' GPS, compass heading and the measured "
+                                           "distance) as GeoJSON points with the rows' fields.",
+                                           show_default=False),
+    tag_from: Optional[str] = typer.Option(None, "--tag-from", metavar="REGEX", help="The row's tag: the "
+                                           "first group (or the match) of REGEX in the file name "
+                                           "(default and no match: the file stem).", show_default=False),
     measure_fn: Optional[str] = measure_fn_option(),
     session_factory: Optional[str] = session_factory_option(),
 ) -> None:
@@ -221,6 +248,7 @@ def measure(
     base_xy = parse_pick(base, "--base")
     if resume and csv_out is None:
         raise typer.BadParameter("--resume needs --csv (the results to resume)", param_hint="--resume")
+    tag_pattern = parse_tag_pattern(tag_from)
     from monodbh.calib import MonodbhError
     from monodbh.toolkit.batch import Job, ResultWriter, expand_photos, unique_stems
 
@@ -234,12 +262,13 @@ def measure(
     from monodbh.toolkit.batch import output_files
     planned = ([] if out_dir is None else [out_dir / "results.jsonl", out_dir / "summary.json"]
                + [f for s in stems for f in output_files(out_dir, s)])
-    check_outputs([*paths, calib], [("--csv", csv_out)], out_dir, planned)
+    check_outputs([*paths, calib], [("--csv", csv_out), ("--geojson", geojson)], out_dir, planned)
+    _check_distinct(csv_out, geojson)
     from .marker_cmd import marker_width_m
     rope_m, marker_from = marker_width_m(calib, rope_mm)
     jobs = [Job(i, p, camera, pick_xy=pick_xy, base_xy=base_xy, rope_diameter_m=rope_m,
                 out_dir=str(out_dir) if out_dir else None,
-                out_stem=s) for i, (p, s) in enumerate(zip(paths, stems))]
+                out_stem=s, tag_pattern=tag_pattern) for i, (p, s) in enumerate(zip(paths, stems))]
     backend = make_backend(measure_fn, session_factory, models_dir)
 
     from rich.console import Console
@@ -249,7 +278,8 @@ def measure(
         writer = ResultWriter(json_stream=sys.stdout if as_json else None, csv_path=csv_out,
                               out_dir=out_dir, meta={"calib": str(calib), "workers": workers,
                                     "marker_width_mm": None if rope_m is None else round(rope_m * 1000, 3),
-                                    "marker_width_from": marker_from}, resume=resume)
+                                    "marker_width_from": marker_from}, resume=resume,
+                              geojson_path=geojson)
     except MonodbhError as exc:
         raise fail(str(exc))
     if writer.done:
@@ -267,9 +297,15 @@ def measure(
         except KeyboardInterrupt:
             interrupted = True
         except MonodbhError as exc:  # the pipeline itself cannot start (models, import)
-            writer.finish(interrupted=True)
+            try:
+                writer.finish(interrupted=True)
+            except MonodbhError:
+                pass
             raise fail(str(exc))
-        summary = writer.finish(interrupted=interrupted)
+        try:
+            summary = writer.finish(interrupted=interrupted)
+        except MonodbhError as exc:  # e.g. the GeoJSON cannot be written at the end
+            raise fail(str(exc))
     if not as_json:
         _table(writer.results, Console(), marker_known=rope_m is not None)
     n, bad = summary["photos"], summary["failed"]
@@ -280,6 +316,18 @@ def measure(
         err_console.print(f"{n - bad} of {n} photos measured" + (f", {bad} failed" if bad else ""),
                           style="red" if bad else None, highlight=False)
     raise typer.Exit(1 if bad else 0)
+
+
+def _check_distinct(csv_out: Optional[Path], geojson: Optional[Path]) -> None:
+    """Exit 2 when ``--geojson`` names the ``--csv`` file."""
+    import os
+
+    from monodbh.toolkit.outputs.paths import printable, same_file
+
+    if csv_out is None or geojson is None:
+        return
+    if os.path.abspath(csv_out) == os.path.abspath(geojson) or same_file(csv_out, geojson):
+        raise fail(f"--geojson {printable(geojson)} is the --csv file; choose another output", 2)
 
 
 def _run(jobs, backend, workers, writer, err_console) -> None:

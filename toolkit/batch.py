@@ -41,7 +41,7 @@ from .result import MeasureResult
 
 __all__ = ["Backend", "Job", "BatchError", "ResultWriter", "DEFAULT_MEASURE", "DEFAULT_SESSION",
            "DEFAULT_RECONSTRUCT", "PHOTO_EXTENSIONS", "load_object", "run_job", "iter_results",
-           "error_result", "normalise_result", "expand_photos", "unique_stems", "csv_row", "output_files",
+           "error_result", "normalise_result", "fill_field_record", "expand_photos", "unique_stems", "csv_row", "output_files",
            "OUTPUT_SUFFIXES", "stage_of",
            "one_line", "summarise", "json_default"]
 
@@ -165,6 +165,9 @@ class Job:
         File stem for the outputs (default: the photo's stem).
     want_cloud : bool
         Ask the pipeline for the tree's cloud (implied by ``out_dir``).
+    tag_pattern : str or None
+        Regular expression giving the row's ``tag`` from the file name
+        (:func:`~.photo_meta.tag_of`); None: the file stem.
     """
     index: int
     photo: str
@@ -175,6 +178,7 @@ class Job:
     out_dir: Optional[str] = None
     out_stem: Optional[str] = None
     want_cloud: bool = False
+    tag_pattern: Optional[str] = None
 
 
 def error_result(photo: str, exc: BaseException | str) -> MeasureResult:
@@ -321,11 +325,36 @@ def run_job(job: Job, measure: Callable[..., Any], session: Any = None, *,
     except Exception as exc:  # MonodbhError -> its message; others -> internal error
         res = error_result(job.photo, exc)
     res.timings_ms.setdefault("total", (time.perf_counter() - t0) * 1000.0)
+    fill_field_record(res, job)
     if job.out_dir:
         _write_outputs(job, res)
     if not keep_debug:
         res.debug = {}
     return res
+
+
+def fill_field_record(res: MeasureResult, job: Job) -> None:
+    """Set the row's field record: ``tag``, the EXIF time, camera position and heading, and
+    (measured rows) the stem's bearing and the tree's position. Never raises; what cannot be
+    known stays None (:mod:`.photo_meta`, :func:`.outputs.geo.fill_geo`)."""
+    from .photo_meta import read_photo_meta, tag_of
+
+    try:
+        res.tag = tag_of(job.photo, job.tag_pattern)
+    except Exception:  # noqa: BLE001 - a pattern the CLI did not check
+        res.tag = tag_of(job.photo)
+    meta = read_photo_meta(job.photo)
+    res.taken_at = meta.taken_at
+    res.camera_lat_deg, res.camera_lon_deg, res.camera_alt_m = meta.lat_deg, meta.lon_deg, meta.alt_m
+    res.gps_accuracy_m = meta.accuracy_m
+    res.camera_heading_deg, res.camera_heading_ref = meta.heading_deg, meta.heading_ref
+    res.stem_bearing_deg = res.tree_lat_deg = res.tree_lon_deg = None
+    try:
+        from .outputs.geo import fill_geo
+
+        fill_geo(res, job.camera, meta.width, meta.height)
+    except Exception:  # noqa: BLE001 - geodesy never fails a row
+        res.stem_bearing_deg = res.tree_lat_deg = res.tree_lon_deg = None
 
 
 # -- processes ---------------------------------------------------------------------------------

@@ -4,7 +4,8 @@
 is measured: a JSON line on a stream (flushed per line), a CSV row appended and flushed
 (``fsync``) per photo, and with an output folder ``results.jsonl`` and ``summary.json``
 rewritten atomically (:mod:`.atomic`) at the end, so an interrupted batch loses nothing
-already measured. Imported by ``monodbh.toolkit.batch`` and the CLI.
+already measured; with a GeoJSON path, the trees with a position (:mod:`.geo`) rewritten
+atomically whenever a row adds one, and at the end. Imported by ``monodbh.toolkit.batch`` and the CLI.
 """
 from __future__ import annotations
 
@@ -40,7 +41,8 @@ def csv_row(d: dict) -> list[str]:
 
 
 _JSON_CELLS = ("flags", "timings_ms", "estimates_cm", "rope_xy")
-_FLOAT_CELLS = ("dbh_cm", "dbh_sigma_cm", "distance_m")
+_FLOAT_CELLS = ("dbh_cm", "dbh_sigma_cm", "distance_m", "camera_lat_deg", "camera_lon_deg", "camera_alt_m",
+                "gps_accuracy_m", "camera_heading_deg", "stem_bearing_deg", "tree_lat_deg", "tree_lon_deg")
 
 
 def row_from_csv(cells: Sequence[str]) -> dict:
@@ -98,10 +100,10 @@ def _read_kept_rows(p: Path) -> list[dict]:
 
 
 def printable_row(d: dict) -> dict:
-    """The row's text fields (photo, error, flags) with non-UTF-8 bytes of file names escaped
+    """The row's text fields (photo, error, flags, tag) with non-UTF-8 bytes of file names escaped
     (:func:`~.paths.printable`), so the row can be written as UTF-8 CSV and JSON."""
     out = dict(d)
-    for k in ("photo", "error", "scale_source"):
+    for k in ("photo", "error", "scale_source", "tag"):
         if isinstance(out.get(k), str):
             out[k] = printable(out[k])
     if isinstance(out.get("flags"), list):
@@ -163,6 +165,10 @@ class ResultWriter:
         Keep the rows ``csv_path`` already holds (:attr:`done`: photo -> row) and append to it
         instead of truncating it; a last line cut by a killed run is dropped. The CSV must have
         this version's header. The kept rows count in ``results.jsonl`` and ``summary.json``.
+    geojson_path : path, optional
+        RFC 7946 FeatureCollection of the rows with a tree position
+        (:func:`~.geo.write_geojson`): written (empty) on open, rewritten atomically after each
+        row that adds a tree and by :meth:`finish`.
 
     Use as a context manager; :meth:`add` per result, :meth:`finish` at the end (also on
     interruption, with ``interrupted=True``).
@@ -171,7 +177,7 @@ class ResultWriter:
     def __init__(self, *, json_stream: Optional[io.TextIOBase] = None,
                  csv_path: Optional[str | os.PathLike] = None,
                  out_dir: Optional[str | os.PathLike] = None, meta: Optional[dict] = None,
-                 resume: bool = False) -> None:
+                 resume: bool = False, geojson_path: Optional[str | os.PathLike] = None) -> None:
         self.json_stream = json_stream
         #: photo (as written in the CSV) -> its row, of the rows kept by ``resume``
         self.done: dict[str, dict] = {}
@@ -179,6 +185,8 @@ class ResultWriter:
         self.meta = {k: printable(v) if isinstance(v, str) else v for k, v in (meta or {}).items()}
         self.results: list[MeasureResult] = []
         self._lines: list[str] = []
+        self._rows: list[dict] = []
+        self._geojson: Optional[Path] = None
         self._csv_file = None
         self._csv = None
         if self.out_dir:
@@ -198,7 +206,20 @@ class ResultWriter:
                     self.done[d["photo"]] = d
                     self.results.append(MeasureResult(**d))
                     self._lines.append(_json_line(d))
+                    self._rows.append(d)              # their trees stay in --geojson
             self._flush_csv()
+        if geojson_path:
+            self._geojson = check_file_target(geojson_path, "--geojson")
+            self._write_geojson()
+
+    def _write_geojson(self) -> None:
+        from .geo import write_geojson
+
+        try:
+            write_geojson(self._geojson, self._rows)
+        except OSError as exc:
+            raise MonodbhError(f"{printable(self._geojson)}: cannot write GeoJSON "
+                               f"({exc.strerror or exc})") from None
 
     def _flush_csv(self) -> None:
         self._csv_file.flush()
@@ -219,6 +240,12 @@ class ResultWriter:
         if self._csv is not None:
             self._csv.writerow(csv_row(d))
             self._flush_csv()
+        self._rows.append(d)
+        if self._geojson is not None and d.get("tree_lat_deg") is not None and not d.get("error"):
+            try:
+                self._write_geojson()
+            except MonodbhError:  # e.g. disk full: the batch goes on, finish() tries again and says so
+                pass
         return d
 
     def finish(self, *, interrupted: bool = False, extra: Optional[dict] = None) -> Optional[dict]:
@@ -226,6 +253,8 @@ class ResultWriter:
         if self._csv_file is not None and not self._csv_file.closed:
             self._csv_file.close()
         summary = {**self.meta, **summarise(self.results), "interrupted": interrupted, **(extra or {})}
+        if self._geojson is not None:
+            self._write_geojson()
         if self.out_dir:
             atomic_write_text(self.out_dir / "results.jsonl", "".join(s + "\n" for s in self._lines))
             atomic_write_text(self.out_dir / "summary.json",
