@@ -102,3 +102,24 @@ def test_resume_needs_a_csv_of_this_version(batch, tmp_path):
                                                 "columns differ); give another --csv to resume into, or leave "
                                                 "out --resume")
     assert (d / "other.csv").read_text() == "a,b\n1,2\n"
+
+
+def test_resumed_rows_keep_their_types_and_trees(tmp_path):
+    import json
+
+    from monodbh.toolkit.outputs.results_file import ResultWriter
+
+    row = MeasureResult(photo="a.jpg", dbh_cm=25.0, dbh_sigma_cm=1.0, distance_m=4.0, tag="a",
+                        camera_lat_deg=48.1, camera_lon_deg=11.5, tree_lat_deg=48.10003, tree_lon_deg=11.50002,
+                        timings_ms={"total": 3.0})
+    with ResultWriter(csv_path=tmp_path / "r.csv", out_dir=tmp_path / "o") as w:
+        w.add(row)
+        w.finish()
+    first = (tmp_path / "o" / "results.jsonl").read_text()
+    with ResultWriter(csv_path=tmp_path / "r.csv", out_dir=tmp_path / "o", resume=True,
+                      geojson_path=tmp_path / "t.geojson") as w:
+        assert list(w.done) == ["a.jpg"]
+        w.finish()
+    assert (tmp_path / "o" / "results.jsonl").read_text() == first
+    feats = json.loads((tmp_path / "t.geojson").read_text())["features"]
+    assert len(feats) == 1 and feats[0]["geometry"]["coordinates"] == [11.50002, 48.10003]
