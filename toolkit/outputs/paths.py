@@ -15,7 +15,7 @@ from typing import Iterable, Optional
 from monodbh.calib.errors import MonodbhError
 
 __all__ = ["OutputPathError", "InputClash", "printable", "same_file", "check_not_input", "ensure_folder",
-           "check_file_target", "fit_name", "NAME_MAX_BYTES"]
+           "check_file_target", "fit_name", "first_clash", "NAME_MAX_BYTES"]
 
 #: longest file name (bytes) of the usual file systems (ext4, APFS, NTFS in UTF-16 units)
 NAME_MAX_BYTES = 255
@@ -92,11 +92,9 @@ def ensure_folder(folder: str | os.PathLike, option: str = "") -> Path:
         return p
     if p.exists() or p.is_symlink():
         raise OutputPathError(f"{label}: not a folder (a file of that name exists)")
-    for parent in p.parents:
-        if parent.exists() and not parent.is_dir():
-            raise OutputPathError(f"{label}: not a folder ({printable(parent)} is a file)")
-        if parent.is_dir():
-            break
+    blocker = _file_on_the_way(p)
+    if blocker is not None:
+        raise OutputPathError(f"{label}: not a folder ({printable(blocker)} is a file)")
     try:
         p.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
@@ -110,13 +108,19 @@ def check_file_target(path: str | os.PathLike, option: str = "") -> Path:
     label = f"{option} {printable(p)}".strip() if option else printable(p)
     if p.is_dir():
         raise OutputPathError(f"{label}: is a folder, not a file")
-    for parent in p.parents:
-        if parent.exists() and not parent.is_dir():
-            raise OutputPathError(f"{label}: not a folder on the way ({printable(parent)} is a file)")
-        if parent.is_dir():
-            break
+    blocker = _file_on_the_way(p)
+    if blocker is not None:
+        raise OutputPathError(f"{label}: not a folder on the way ({printable(blocker)} is a file)")
     ensure_folder(p.parent if str(p.parent) else ".", option)
     return p
+
+
+def _file_on_the_way(p: Path) -> Optional[Path]:
+    """The nearest existing ancestor of ``p`` when it is not a folder (a file in the way), else None."""
+    for parent in p.parents:
+        if parent.exists():
+            return None if parent.is_dir() else parent
+    return None
 
 
 def fit_name(stem: str, suffix: str, limit: int = NAME_MAX_BYTES - 24) -> str:
