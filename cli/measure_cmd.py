@@ -232,6 +232,18 @@ def measure(
                                            "(from the photos' GPS, compass heading and the measured "
                                            "distance) as GeoJSON points with the rows' fields.",
                                            show_default=False),
+    report: Optional[Path] = typer.Option(None, "--report", help="Also write an HTML report (one "
+                                          "self-contained file: a sortable table with each photo's "
+                                          "overlay, the DBH histogram, a map of the trees, the stand "
+                                          "summary), at the end of the batch.", show_default=False),
+    plot_area_m2: Optional[float] = typer.Option(None, "--plot-area-m2",
+                                                 help="The plot's horizontal area, m^2: per-hectare "
+                                                 "figures in the --report.", show_default=False),
+    scheduler: Optional[str] = typer.Option(None, "--scheduler", metavar="ADDRESS", help="Run the batch "
+                                            "on the Dask cluster whose scheduler is at ADDRESS (e.g. "
+                                            "tcp://10.0.0.5:8786; pip install monodbh[cluster]). Photos, "
+                                            "camera file and --out-dir must be on a file system the "
+                                            "workers share.", show_default=False),
     tag_from: Optional[str] = typer.Option(None, "--tag-from", metavar="REGEX", help="The row's tag: the "
                                            "first group (or the match) of REGEX in the file name "
                                            "(default and no match: the file stem).", show_default=False),
@@ -248,6 +260,15 @@ def measure(
     base_xy = parse_pick(base, "--base")
     if resume and csv_out is None:
         raise typer.BadParameter("--resume needs --csv (the results to resume)", param_hint="--resume")
+    if plot_area_m2 is not None and not (math.isfinite(plot_area_m2) and plot_area_m2 > 0):
+        raise typer.BadParameter(f"the plot's area must be a number of m^2 > 0, got {plot_area_m2:g}",
+                                 param_hint="--plot-area-m2")
+    if plot_area_m2 is not None and report is None:
+        raise typer.BadParameter("--plot-area-m2 is for the --report (dbh summary takes it too)",
+                                 param_hint="--plot-area-m2")
+    if scheduler is not None and workers > 1:
+        raise typer.BadParameter("the Dask cluster sets how many photos run at once; leave out --workers",
+                                 param_hint="--scheduler")
     tag_pattern = parse_tag_pattern(tag_from)
     from monodbh.calib import MonodbhError
     from monodbh.toolkit.batch import Job, ResultWriter, expand_photos, unique_stems
@@ -262,13 +283,17 @@ def measure(
     from monodbh.toolkit.batch import output_files
     planned = ([] if out_dir is None else [out_dir / "results.jsonl", out_dir / "summary.json"]
                + [f for s in stems for f in output_files(out_dir, s)])
-    check_outputs([*paths, calib], [("--csv", csv_out), ("--geojson", geojson)], out_dir, planned)
-    _check_distinct(csv_out, geojson)
+    check_outputs([*paths, calib], [("--csv", csv_out), ("--geojson", geojson), ("--report", report)],
+                  out_dir, planned)
+    _check_distinct([("--csv", csv_out), ("--geojson", geojson), ("--report", report)])
+    from monodbh.toolkit.outputs.report import REPORT_THUMBNAIL_PX
+
     from .marker_cmd import marker_width_m
     rope_m, marker_from = marker_width_m(calib, rope_mm)
     jobs = [Job(i, p, camera, pick_xy=pick_xy, base_xy=base_xy, rope_diameter_m=rope_m,
                 out_dir=str(out_dir) if out_dir else None,
-                out_stem=s, tag_pattern=tag_pattern) for i, (p, s) in enumerate(zip(paths, stems))]
+                out_stem=s, tag_pattern=tag_pattern, thumbnail_px=REPORT_THUMBNAIL_PX if report else 0)
+            for i, (p, s) in enumerate(zip(paths, stems))]
     backend = make_backend(measure_fn, session_factory, models_dir)
 
     from rich.console import Console
@@ -279,7 +304,9 @@ def measure(
                               out_dir=out_dir, meta={"calib": str(calib), "workers": workers,
                                     "marker_width_mm": None if rope_m is None else round(rope_m * 1000, 3),
                                     "marker_width_from": marker_from}, resume=resume,
-                              geojson_path=geojson)
+                              geojson_path=geojson, report_path=report,
+                              report_options=_report_options(calib, rope_m, marker_from, plot_area_m2,
+                                                             scheduler))
     except MonodbhError as exc:
         raise fail(str(exc))
     if writer.done:
@@ -293,7 +320,7 @@ def measure(
     interrupted = False
     with writer:
         try:
-            _run(jobs, backend, workers, writer, err_console)
+            _run(jobs, backend, workers, writer, err_console, scheduler)
         except KeyboardInterrupt:
             interrupted = True
         except MonodbhError as exc:  # the pipeline itself cannot start (models, import)
@@ -318,23 +345,35 @@ def measure(
     raise typer.Exit(1 if bad else 0)
 
 
-def _check_distinct(csv_out: Optional[Path], geojson: Optional[Path]) -> None:
-    """Exit 2 when ``--geojson`` names the ``--csv`` file."""
+def _check_distinct(named) -> None:
+    """Exit 2 when two output options (``(option, path)`` pairs) name the same file."""
     import os
 
     from monodbh.toolkit.outputs.paths import printable, same_file
 
-    if csv_out is None or geojson is None:
-        return
-    if os.path.abspath(csv_out) == os.path.abspath(geojson) or same_file(csv_out, geojson):
-        raise fail(f"--geojson {printable(geojson)} is the --csv file; choose another output", 2)
+    given = [(o, p) for o, p in named if p is not None]
+    for i, (o1, p1) in enumerate(given):
+        for o2, p2 in given[:i]:
+            if os.path.abspath(p1) == os.path.abspath(p2) or same_file(p1, p2):
+                raise fail(f"{o1} {printable(p1)} is the {o2} file; choose another output", 2)
 
 
-def _run(jobs, backend, workers, writer, err_console) -> None:
+def _report_options(calib, rope_m, marker_from, plot_area_m2, scheduler) -> dict:
+    """``render_report`` keywords: the header's lines, the plot area, whether the marker is known."""
+    from monodbh.toolkit.outputs.paths import printable
+
+    meta = {"camera file": printable(calib),
+            "marker width": None if rope_m is None else f"{rope_m * 1000:g} mm ({marker_from})",
+            "plot area": None if plot_area_m2 is None else f"{plot_area_m2:g} m²",
+            "Dask scheduler": scheduler}
+    return {"meta": meta, "plot_area_m2": plot_area_m2, "marker_known": rope_m is not None}
+
+
+def _run(jobs, backend, workers, writer, err_console, scheduler=None) -> None:
     from monodbh.toolkit.batch import iter_results
     from monodbh.toolkit.outputs.paths import printable
 
-    if len(jobs) == 1:
+    if len(jobs) == 1 and scheduler is None:
         for res in iter_results(jobs, backend, workers=1):
             writer.add(res)
         return
@@ -344,6 +383,6 @@ def _run(jobs, backend, workers, writer, err_console) -> None:
                   MofNCompleteColumn(), TimeRemainingColumn(), console=err_console,
                   transient=True) as prog:
         task = prog.add_task("measuring", total=len(jobs))
-        for res in iter_results(jobs, backend, workers=workers):
+        for res in iter_results(jobs, backend, workers=workers, scheduler=scheduler):
             writer.add(res)
             prog.update(task, advance=1, description=printable(Path(res.photo).name))

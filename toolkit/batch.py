@@ -168,6 +168,9 @@ class Job:
     tag_pattern : str or None
         Regular expression giving the row's ``tag`` from the file name
         (:func:`~.photo_meta.tag_of`); None: the file stem.
+    thumbnail_px : int
+        > 0: set ``MeasureResult.thumbnail_jpeg`` to the overlay downscaled to this longest
+        side (for ``--report``; :func:`~.outputs.report.thumbnail_jpeg`); 0: none.
     """
     index: int
     photo: str
@@ -179,6 +182,7 @@ class Job:
     out_stem: Optional[str] = None
     want_cloud: bool = False
     tag_pattern: Optional[str] = None
+    thumbnail_px: int = 0
 
 
 def error_result(photo: str, exc: BaseException | str) -> MeasureResult:
@@ -262,16 +266,32 @@ def output_files(out_dir: str | os.PathLike, stem: str) -> list[Path]:
 
 
 def _write_outputs(job: Job, res: MeasureResult) -> None:
-    """Overlay PNG and tree PLY of one photo; failures become flags, never exceptions."""
-    from .outputs.overlay import write_overlay
+    """Overlay PNG and tree PLY of one photo (``job.out_dir``) and the overlay's thumbnail
+    (``job.thumbnail_px``); failures become flags, never exceptions."""
+    from .outputs.overlay import render_overlay, save_overlay
 
-    overlay_path, cloud_path = output_files(job.out_dir, job.out_stem or Path(job.photo).stem)
+    rgb = None
     try:
-        write_overlay(overlay_path, res)
+        rgb = render_overlay(res)
     except MonodbhError:  # e.g. the photo itself cannot be read: nothing to draw on
         pass
     except Exception:
         res.flags.append("overlay_failed")
+    if job.thumbnail_px and rgb is not None:
+        from .outputs.report import thumbnail_jpeg
+
+        try:
+            res.thumbnail_jpeg = thumbnail_jpeg(rgb, job.thumbnail_px)
+        except Exception:  # noqa: BLE001 - the report shows the row without a picture
+            res.thumbnail_jpeg = None
+    if not job.out_dir:
+        return
+    overlay_path, cloud_path = output_files(job.out_dir, job.out_stem or Path(job.photo).stem)
+    if rgb is not None:
+        try:
+            save_overlay(overlay_path, rgb)
+        except Exception:
+            res.flags.append("overlay_failed")
     cloud = (res.debug or {}).get("tree_cloud")
     if cloud is not None and len(cloud):
         try:
@@ -310,7 +330,7 @@ def run_job(job: Job, measure: Callable[..., Any], session: Any = None, *,
     not report one. ``debug`` is dropped unless ``keep_debug``.
     """
     t0 = time.perf_counter()
-    want_debug = bool(job.out_dir) or keep_debug
+    want_debug = bool(job.out_dir or job.thumbnail_px) or keep_debug
     try:
         _check_photo_file(job.photo)
         kw: dict[str, Any] = dict(pick_xy=job.pick_xy, want_cloud=bool(job.want_cloud or job.out_dir),
@@ -326,7 +346,7 @@ def run_job(job: Job, measure: Callable[..., Any], session: Any = None, *,
         res = error_result(job.photo, exc)
     res.timings_ms.setdefault("total", (time.perf_counter() - t0) * 1000.0)
     fill_field_record(res, job)
-    if job.out_dir:
+    if job.out_dir or job.thumbnail_px:
         _write_outputs(job, res)
     if not keep_debug:
         res.debug = {}
@@ -381,7 +401,8 @@ def _worker_run(job: Job) -> MeasureResult | tuple[str, str]:
 
 
 def iter_results(jobs: Sequence[Job], backend: Backend, *, workers: int = 1,
-                 keep_debug: bool = False, session: Any = None) -> Iterator[MeasureResult]:
+                 keep_debug: bool = False, session: Any = None,
+                 scheduler: Optional[str] = None) -> Iterator[MeasureResult]:
     """Measure ``jobs`` and yield their results in order, as soon as each is available.
 
     Parameters
@@ -396,6 +417,9 @@ def iter_results(jobs: Sequence[Job], backend: Backend, *, workers: int = 1,
         Keep ``result.debug`` (serial mode only; worker results never carry it).
     session : object, optional
         Ready session for serial mode.
+    scheduler : str, optional
+        Address of a Dask scheduler (``tcp://host:8786``): the jobs run on its cluster, one
+        session per worker process (:mod:`.cluster`; ``workers`` is ignored).
 
     Raises
     ------
@@ -404,6 +428,11 @@ def iter_results(jobs: Sequence[Job], backend: Backend, *, workers: int = 1,
     """
     jobs = list(jobs)
     if not jobs:
+        return
+    if scheduler is not None:
+        from .cluster import iter_cluster_results
+
+        yield from iter_cluster_results(jobs, backend, scheduler)
         return
     if workers <= 1 or len(jobs) == 1:
         fn = backend.function()

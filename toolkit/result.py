@@ -1,7 +1,8 @@
 """Result records of the measuring pipeline (plain data; no heavy imports)."""
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field
+import copy
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -55,7 +56,8 @@ class MeasureResult:
 
     ``dbh_cm`` is None exactly when ``error`` is set. ``flags`` are short machine-readable
     strings (e.g. ``short_arc``, ``estimators_disagree``, ``scale_from_network``).
-    ``debug`` holds arrays for overlays and clouds; it is not serialised.
+    ``debug`` holds arrays for overlays and clouds and ``thumbnail_jpeg`` the overlay's
+    thumbnail for the HTML report; neither is serialised.
 
     The field record (set by ``toolkit.batch.run_job`` from the photo's name and EXIF; None
     where unknown): ``tag`` (the photo's stem, or ``--tag-from``), ``taken_at`` (ISO 8601),
@@ -88,12 +90,12 @@ class MeasureResult:
     stem_bearing_deg: float | None = None
     tree_lat_deg: float | None = None
     tree_lon_deg: float | None = None
+    #: JPEG of the overlay, downscaled (``Job.thumbnail_px``), for ``--report``; not serialised
+    thumbnail_jpeg: bytes | None = field(default=None, repr=False)
 
     def to_json_dict(self) -> dict:
         """JSON-serialisable dict with exactly :data:`RESULT_FIELDS` (``debug`` dropped)."""
-        d = asdict(self)
-        d.pop("debug", None)
-        out = {k: d[k] for k in RESULT_FIELDS}
+        out = {k: copy.deepcopy(getattr(self, k)) for k in RESULT_FIELDS}
         for k, n in _DECIMALS.items():
             if out[k] is not None:
                 out[k] = round(float(out[k]), n)

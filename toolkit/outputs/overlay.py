@@ -57,7 +57,7 @@ import numpy as np
 from ..result import MeasureResult
 from .atomic import atomic_path
 
-__all__ = ["render_overlay", "write_overlay", "format_dbh", "OVERLAY_MAX_SIDE"]
+__all__ = ["render_overlay", "write_overlay", "save_overlay", "format_dbh", "OVERLAY_MAX_SIDE"]
 
 #: Longest side of an overlay picture; bigger images are downscaled.
 OVERLAY_MAX_SIDE = 2048
@@ -336,10 +336,14 @@ def write_overlay(path: Any, result: MeasureResult, image: Optional[np.ndarray] 
     Path
         The written file.
     """
+    return save_overlay(path, render_overlay(result, image))
+
+
+def save_overlay(path: Any, rgb: np.ndarray) -> Path:
+    """Write a rendered overlay (H, W, 3) uint8 RGB as a PNG, atomically; returns the path."""
     from PIL import Image
 
     p = Path(path)
-    rgb = render_overlay(result, image)
     with atomic_path(p) as tmp:
         Image.fromarray(rgb).save(tmp, format="PNG", compress_level=3)
     return p

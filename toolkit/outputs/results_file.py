@@ -5,7 +5,8 @@ is measured: a JSON line on a stream (flushed per line), a CSV row appended and 
 (``fsync``) per photo, and with an output folder ``results.jsonl`` and ``summary.json``
 rewritten atomically (:mod:`.atomic`) at the end, so an interrupted batch loses nothing
 already measured; with a GeoJSON path, the trees with a position (:mod:`.geo`) rewritten
-atomically whenever a row adds one, and at the end. Imported by ``monodbh.toolkit.batch`` and the CLI.
+atomically whenever a row adds one, and at the end; with a report path, the HTML report
+(:mod:`.report`) written atomically at the end (also of an interrupted batch). Imported by ``monodbh.toolkit.batch`` and the CLI.
 """
 from __future__ import annotations
 
@@ -21,7 +22,7 @@ from monodbh.calib.errors import MonodbhError
 
 from ..result import RESULT_FIELDS, MeasureResult
 from .atomic import atomic_write_text
-from .paths import check_file_target, ensure_folder, printable
+from .paths import check_file_target, ensure_folder, fit_name, printable
 
 __all__ = ["ResultWriter", "csv_row", "row_from_csv", "json_default", "summarise", "printable_row"]
 
@@ -169,6 +170,13 @@ class ResultWriter:
         RFC 7946 FeatureCollection of the rows with a tree position
         (:func:`~.geo.write_geojson`): written (empty) on open, rewritten atomically after each
         row that adds a tree and by :meth:`finish`.
+    report_path : path, optional
+        The HTML report (:func:`~.report.write_report`) of every row, written atomically by
+        :meth:`finish`. Rows carry their thumbnail (``MeasureResult.thumbnail_jpeg``); rows kept
+        by ``resume`` get theirs from ``out_dir``'s overlay or their photo.
+    report_options : dict, optional
+        Keyword arguments of :func:`~.report.render_report` (``meta``, ``plot_area_m2``,
+        ``marker_known``, ``title``).
 
     Use as a context manager; :meth:`add` per result, :meth:`finish` at the end (also on
     interruption, with ``interrupted=True``).
@@ -177,7 +185,9 @@ class ResultWriter:
     def __init__(self, *, json_stream: Optional[io.TextIOBase] = None,
                  csv_path: Optional[str | os.PathLike] = None,
                  out_dir: Optional[str | os.PathLike] = None, meta: Optional[dict] = None,
-                 resume: bool = False, geojson_path: Optional[str | os.PathLike] = None) -> None:
+                 resume: bool = False, geojson_path: Optional[str | os.PathLike] = None,
+                 report_path: Optional[str | os.PathLike] = None,
+                 report_options: Optional[dict] = None) -> None:
         self.json_stream = json_stream
         #: photo (as written in the CSV) -> its row, of the rows kept by ``resume``
         self.done: dict[str, dict] = {}
@@ -187,6 +197,10 @@ class ResultWriter:
         self._lines: list[str] = []
         self._rows: list[dict] = []
         self._geojson: Optional[Path] = None
+        self._report: Optional[Path] = None
+        self._report_options = dict(report_options or {})
+        self._thumbs: list[Optional[bytes]] = []
+        self._n_kept = 0
         self._csv_file = None
         self._csv = None
         if self.out_dir:
@@ -207,10 +221,14 @@ class ResultWriter:
                     self.results.append(MeasureResult(**d))
                     self._lines.append(_json_line(d))
                     self._rows.append(d)              # their trees stay in --geojson
+                    self._thumbs.append(None)         # made by finish() for the report
+                self._n_kept = len(kept)
             self._flush_csv()
         if geojson_path:
             self._geojson = check_file_target(geojson_path, "--geojson")
             self._write_geojson()
+        if report_path:
+            self._report = check_file_target(report_path, "--report")
 
     def _write_geojson(self) -> None:
         from .geo import write_geojson
@@ -241,6 +259,8 @@ class ResultWriter:
             self._csv.writerow(csv_row(d))
             self._flush_csv()
         self._rows.append(d)
+        self._thumbs.append(res.thumbnail_jpeg)
+        res.thumbnail_jpeg = None                     # kept once, in _thumbs
         if self._geojson is not None and d.get("tree_lat_deg") is not None and not d.get("error"):
             try:
                 self._write_geojson()
@@ -255,11 +275,27 @@ class ResultWriter:
         summary = {**self.meta, **summarise(self.results), "interrupted": interrupted, **(extra or {})}
         if self._geojson is not None:
             self._write_geojson()
+        if self._report is not None:
+            self._write_report()
         if self.out_dir:
             atomic_write_text(self.out_dir / "results.jsonl", "".join(s + "\n" for s in self._lines))
             atomic_write_text(self.out_dir / "summary.json",
                               json.dumps(summary, indent=1, ensure_ascii=False, default=json_default) + "\n")
         return summary
+
+    def _write_report(self) -> None:
+        from .report import thumbnail_from_photo, write_report
+
+        for i, (d, t) in enumerate(zip(self._rows, self._thumbs)):
+            if t is None and i < self._n_kept:        # a kept row: its overlay, else its photo
+                png = (None if self.out_dir is None
+                       else self.out_dir / fit_name(Path(d["photo"]).stem or "photo", "_overlay.png"))
+                self._thumbs[i] = thumbnail_from_photo(d, overlay_png=png)
+        try:
+            write_report(self._report, self._rows, self._thumbs, **self._report_options)
+        except OSError as exc:
+            raise MonodbhError(f"{printable(self._report)}: cannot write the report "
+                               f"({exc.strerror or exc})") from None
 
     def __enter__(self) -> "ResultWriter":
         return self
