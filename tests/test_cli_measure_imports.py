@@ -16,7 +16,8 @@ NOT_ON_THE_MEASURING_PATH = (
     "monodbh.models.synthetic", "monodbh.models.modeling", "monodbh.calib.board",
     "monodbh.calib.calibration", "monodbh.calib.coverage", "monodbh.calib.pose",
     "monodbh.calib.debug", "monodbh.cli.calibrate_cmd", "monodbh.cli.eval_cmd",
-    "monodbh.cli.train_cmd", "monodbh.cli.synth_cmd", "torch", "trimesh", "onnx",
+    "monodbh.cli.train_cmd", "monodbh.cli.synth_cmd", "monodbh.toolkit.cluster", "torch", "trimesh",
+    "onnx", "distributed", "dask",
 )
 
 _SCRIPT = """

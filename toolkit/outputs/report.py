@@ -126,7 +126,9 @@ def retake_advice(row: dict, marker_known: bool = False) -> str:
                "least 5 px thick" if marker_known else
                "step back until the stem's foot is in the photo, or give the marker's width "
                "(dbh marker CAM --width-mm W, or --rope-mm W)")
-        advice.append(f"Retake: {how}. Where the foot is in the photo but was not found, tap it: --base X,Y.")
+        tap = ("" if flags & {"stem_base_edge", "stem_base_occluded"} else
+               " Where the foot is in the photo but was not found, tap it: --base X,Y.")
+        advice.append(f"Retake: {how}.{tap}")
     if "few_pixels_across_stem" in flags:
         advice.append("Retake closer: the stem is too few pixels wide.")
     if "photo_maybe_sideways" in flags:
