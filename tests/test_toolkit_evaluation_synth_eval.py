@@ -1,5 +1,6 @@
 """toolkit.evaluation.synth_eval: the metrics of dbh eval, its jobs and its report rows."""
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -106,3 +107,19 @@ def test_eval_metrics_by_base_view_counts_base_use_and_wrong_bases():
     assert (v["occluded"]["base_used"], v["occluded"]["wrong_base"]) == (1, 1)
     assert (v["outside"]["base_used"], v["outside"]["wrong_base"]) == (1, 1)
     assert m["wrong_base"] == 2
+
+
+def test_width_alone_is_free_of_the_scale():
+    from monodbh.toolkit.evaluation.synth_eval import EvalSample
+
+    s = EvalSample(0, Path("x"), {}, None, gt_dbh_cm=30.0, gt_rope_px=2.0, gt_distance_m=4.0)
+    # 20 % too far and 20 % too wide: the width itself is right
+    assert eval_record(s, {"dbh_cm": 36.0, "distance_m": 4.8, "error": None, "rope_xy": None})["width_err_pct"] \
+        == pytest.approx(0.0, abs=1e-9)
+    # the right distance, 10 % too wide
+    assert eval_record(s, {"dbh_cm": 33.0, "distance_m": 4.0, "error": None, "rope_xy": None})["width_err_pct"] \
+        == pytest.approx(10.0)
+    recs = [{"gt_dbh_cm": 30.0, "dbh_cm": 30.0, "error": None, "width_err_pct": w} for w in (-1.0, 2.0, -3.0, 10.0)]
+    m = eval_metrics(recs)
+    assert m["width_median_abs_err_pct"] == pytest.approx(2.5) and m["width_p90_abs_err_pct"] == 10.0
+    assert m["width_bias_pct"] == pytest.approx(0.5)

@@ -142,7 +142,10 @@ def eval_record(sample: EvalSample, result: dict) -> dict:
     """One row of the report: the sample's truth joined to its result (``MeasureResult.to_json_dict``).
 
     Keys ``sample``, ``gt_dbh_cm``, ``gt_rope_px``, ``gt_base_status``, ``gt_distance_m``, ``err_cm``
-    (measured - true), ``distance_err_pct`` (measured / true distance - 1, %), ``on_true_rope``
+    (measured - true), ``distance_err_pct`` (measured / true distance - 1, %), ``width_err_pct``
+    (the stem's width alone: measured / true DBH-to-distance ratio - 1, %; for a round stem
+    ``DBH / distance = 2 sin(half its angular width)``, so this is the width's error with the
+    scale taken from the truth), ``on_true_rope``
     (:func:`.synth_samples.on_true_rope`, for measured roped samples), then the result's fields.
     """
     gt, d = sample.gt_dbh_cm, result
@@ -150,10 +153,13 @@ def eval_record(sample: EvalSample, result: dict) -> dict:
           if gt is not None and d["dbh_cm"] is not None else None)
     dist_err = (100.0 * (d["distance_m"] / sample.gt_distance_m - 1.0)
                 if d.get("distance_m") is not None and sample.gt_distance_m else None)
+    width_err = (100.0 * ((d["dbh_cm"] / d["distance_m"]) / (gt / sample.gt_distance_m) - 1.0)
+                 if gt and d.get("dbh_cm") is not None and d.get("distance_m") and sample.gt_distance_m
+                 else None)
     return {"sample": sample.index, "gt_dbh_cm": gt, "gt_rope_px": sample.gt_rope_px,
             "gt_base_status": sample.gt_base_status, "gt_distance_m": sample.gt_distance_m,
             "err_cm": (d["dbh_cm"] - gt if gt is not None and d["dbh_cm"] is not None else None),
-            "distance_err_pct": dist_err, "on_true_rope": on, **d}
+            "distance_err_pct": dist_err, "width_err_pct": width_err, "on_true_rope": on, **d}
 
 
 def eval_report(folder: Path, records: Sequence[dict], jobs: Sequence[Job], metrics: dict, stages: dict, *,
@@ -216,7 +222,9 @@ def eval_metrics(records: Sequence[dict]) -> dict:
         ``wrong_rope`` (measured roped samples whose rope is another band: a wrong tree measured,
         of ``rope_checked`` with ground truth to tell), ``failure_reasons`` (roped scenes' error
         messages, counted), ``by_scale_source``,
-        ``by_rope_px`` (detection rate and MAE per bin of ``gt_rope_px``, where records have it).
+        ``by_rope_px`` (detection rate and MAE per bin of ``gt_rope_px``, where records have it),
+        ``width_median_abs_err_pct``, ``width_p90_abs_err_pct``, ``width_bias_pct`` (the stem's
+        width alone, ``width_err_pct``, over the measured samples that have it).
     """
     roped = [r for r in records if r.get("gt_dbh_cm") is not None]
     norope = [r for r in records if r.get("gt_dbh_cm") is None]
@@ -236,6 +244,8 @@ def eval_metrics(records: Sequence[dict]) -> dict:
     def mean(v):
         return statistics.fmean(v) if v else None
     by_view = _by_base_view(roped)
+    werr = [float(r["width_err_pct"]) for r in meas if r.get("width_err_pct") is not None]
+    wabs = sorted(abs(w) for w in werr)
 
     return {
         "samples": len(records), "roped": len(roped), "no_rope": len(norope), "measured": len(meas),
@@ -257,6 +267,9 @@ def eval_metrics(records: Sequence[dict]) -> dict:
         "by_rope_px": _by_rope_px(roped),
         "by_base_view": by_view,
         "wrong_base": sum(v["wrong_base"] for k, v in by_view.items() if k != "visible"),
+        "width_median_abs_err_pct": statistics.median(wabs) if wabs else None,
+        "width_p90_abs_err_pct": wabs[min(len(wabs) - 1, math.ceil(0.9 * len(wabs)) - 1)] if wabs else None,
+        "width_bias_pct": statistics.median(werr) if werr else None,
     }
 
 
@@ -353,6 +366,8 @@ def _accuracy_rows(m: dict) -> list[tuple[str, str]]:
         ("bias (measured - true)", _fmt(m["bias_cm"], "{:+.2f} cm")),
         ("median / p90 |error|", f"{_fmt(m['median_abs_err_cm'], '{:.2f}')} / "
                                  f"{_fmt(m['p90_abs_err_cm'], '{:.2f}')} cm"),
+        ("stem width alone: median / p90 |error|", f"{_fmt(m.get('width_median_abs_err_pct'), '{:.1f}')} / "
+                                                   f"{_fmt(m.get('width_p90_abs_err_pct'), '{:.1f}')} %"),
         ("|err| <= 1 sigma", _fmt(m["coverage_1sigma"], pct=True)),
         ("|err| <= 2 sigma", _fmt(m["coverage_2sigma"], pct=True)),
         ("no-rope scenes correctly refused", f"{_fmt(m['refusal_rate'], pct=True)}"
