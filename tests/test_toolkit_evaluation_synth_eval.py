@@ -109,16 +109,40 @@ def test_eval_metrics_by_base_view_counts_base_use_and_wrong_bases():
     assert m["wrong_base"] == 2
 
 
+def _stem_meta(axis_ratio=1.0, phase=0.0, z=4.0, x=0.5):
+    """A camera at the origin looking along world +y (x right, z up); a vertical stem of radius
+    0.15 m whose axis passes ``x`` m right and ``z`` m ahead."""
+    R = [[1, 0, 0], [0, 0, 1], [0, -1, 0]]          # camera x, y (down), z (ahead) in the world
+    return {"t_world_from_cam": [0.0, 0.0, 1.3], "R_world_from_cam": R, "roped_tree": 1,
+            "trees": [{"id": 1, "axis_world": [0, 0, 1], "e1_world": [1, 0, 0], "e2_world": [0, 1, 0],
+                       "position_world": [x, z, 0.0], "axis_ratio": axis_ratio, "ellipse_phase_rad": phase,
+                       "harmonics": [], "r_bh_m": 0.15, "flare": 0.0, "bh_point_cam": [x, 0.0, z]}]}
+
+
+def test_silhouette_of_a_round_stem_is_its_diameter_and_an_ellipse_shows_its_side():
+    from monodbh.toolkit.evaluation.synth_samples import gt_silhouette
+
+    d, dist = gt_silhouette(_stem_meta())
+    assert d == pytest.approx(0.30, rel=1e-5) and dist == pytest.approx(np.hypot(0.5, 4.0))
+    # an ellipse (semi-axes 0.15 and 0.075 m) seen straight ahead (x = 0): broadside along e1 shows
+    # the long axis, turned 90 degrees the short one
+    assert gt_silhouette(_stem_meta(0.5, 0.0, x=0.0))[0] == pytest.approx(0.30, rel=1e-3)
+    assert gt_silhouette(_stem_meta(0.5, np.pi / 2, x=0.0))[0] == pytest.approx(0.15, rel=2e-3)
+    assert gt_silhouette({"roped_tree": None, "trees": []}) is None
+
+
 def test_width_alone_is_free_of_the_scale():
     from monodbh.toolkit.evaluation.synth_eval import EvalSample
 
-    s = EvalSample(0, Path("x"), {}, None, gt_dbh_cm=30.0, gt_rope_px=2.0, gt_distance_m=4.0)
+    meta = _stem_meta()
+    dist = float(np.hypot(0.5, 4.0))
+    s = EvalSample(0, Path("x"), meta, None, gt_dbh_cm=30.0, gt_rope_px=2.0, gt_distance_m=4.0)
     # 20 % too far and 20 % too wide: the width itself is right
-    assert eval_record(s, {"dbh_cm": 36.0, "distance_m": 4.8, "error": None, "rope_xy": None})["width_err_pct"] \
-        == pytest.approx(0.0, abs=1e-9)
+    rec = eval_record(s, {"dbh_cm": 36.0, "distance_m": 1.2 * dist, "error": None, "rope_xy": None})
+    assert rec["width_err_pct"] == pytest.approx(0.0, abs=1e-3) and rec["roundness_pct"] == pytest.approx(0, abs=1e-3)
     # the right distance, 10 % too wide
-    assert eval_record(s, {"dbh_cm": 33.0, "distance_m": 4.0, "error": None, "rope_xy": None})["width_err_pct"] \
-        == pytest.approx(10.0)
+    rec = eval_record(s, {"dbh_cm": 33.0, "distance_m": dist, "error": None, "rope_xy": None})
+    assert rec["width_err_pct"] == pytest.approx(10.0, abs=1e-3)
     recs = [{"gt_dbh_cm": 30.0, "dbh_cm": 30.0, "error": None, "width_err_pct": w} for w in (-1.0, 2.0, -3.0, 10.0)]
     m = eval_metrics(recs)
     assert m["width_median_abs_err_pct"] == pytest.approx(2.5) and m["width_p90_abs_err_pct"] == 10.0

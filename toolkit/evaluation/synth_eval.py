@@ -23,7 +23,7 @@ import numpy as np
 from monodbh.calib.errors import MonodbhError
 from monodbh.toolkit.batch import Job
 
-from .synth_samples import camera_from_meta, gt_dbh_cm, gt_rope_px, on_true_rope, true_rope_diameter_m
+from .synth_samples import camera_from_meta, gt_dbh_cm, gt_rope_px, gt_silhouette, on_true_rope, true_rope_diameter_m
 from .taps import sample_base_tap, sample_rope_tap, true_base_pixel
 
 __all__ = ["EvalSample", "SampleRecordError", "read_eval_samples", "eval_jobs", "eval_record", "eval_report",
@@ -143,9 +143,10 @@ def eval_record(sample: EvalSample, result: dict) -> dict:
 
     Keys ``sample``, ``gt_dbh_cm``, ``gt_rope_px``, ``gt_base_status``, ``gt_distance_m``, ``err_cm``
     (measured - true), ``distance_err_pct`` (measured / true distance - 1, %), ``width_err_pct``
-    (the stem's width alone: measured / true DBH-to-distance ratio - 1, %; for a round stem
-    ``DBH / distance = 2 sin(half its angular width)``, so this is the width's error with the
-    scale taken from the truth), ``on_true_rope``
+    (the stem's width alone, the scale taken from the truth: the measured DBH-to-distance ratio
+    against the true silhouette's, :func:`.synth_samples.gt_silhouette`, - 1, %),
+    ``roundness_pct`` (the true silhouette diameter / tape DBH - 1, %: what no single view
+    sees), ``on_true_rope``
     (:func:`.synth_samples.on_true_rope`, for measured roped samples), then the result's fields.
     """
     gt, d = sample.gt_dbh_cm, result
@@ -153,13 +154,14 @@ def eval_record(sample: EvalSample, result: dict) -> dict:
           if gt is not None and d["dbh_cm"] is not None else None)
     dist_err = (100.0 * (d["distance_m"] / sample.gt_distance_m - 1.0)
                 if d.get("distance_m") is not None and sample.gt_distance_m else None)
-    width_err = (100.0 * ((d["dbh_cm"] / d["distance_m"]) / (gt / sample.gt_distance_m) - 1.0)
-                 if gt and d.get("dbh_cm") is not None and d.get("distance_m") and sample.gt_distance_m
-                 else None)
+    sil = gt_silhouette(sample.meta) if gt else None
+    width_err = (100.0 * ((d["dbh_cm"] / d["distance_m"]) / (100.0 * sil[0] / sil[1]) - 1.0)
+                 if sil and d.get("dbh_cm") is not None and d.get("distance_m") else None)
     return {"sample": sample.index, "gt_dbh_cm": gt, "gt_rope_px": sample.gt_rope_px,
             "gt_base_status": sample.gt_base_status, "gt_distance_m": sample.gt_distance_m,
             "err_cm": (d["dbh_cm"] - gt if gt is not None and d["dbh_cm"] is not None else None),
-            "distance_err_pct": dist_err, "width_err_pct": width_err, "on_true_rope": on, **d}
+            "distance_err_pct": dist_err, "width_err_pct": width_err,
+            "roundness_pct": 100.0 * (100.0 * sil[0] / gt - 1.0) if sil else None, "on_true_rope": on, **d}
 
 
 def eval_report(folder: Path, records: Sequence[dict], jobs: Sequence[Job], metrics: dict, stages: dict, *,
@@ -224,7 +226,9 @@ def eval_metrics(records: Sequence[dict]) -> dict:
         messages, counted), ``by_scale_source``,
         ``by_rope_px`` (detection rate and MAE per bin of ``gt_rope_px``, where records have it),
         ``width_median_abs_err_pct``, ``width_p90_abs_err_pct``, ``width_bias_pct`` (the stem's
-        width alone, ``width_err_pct``, over the measured samples that have it).
+        width alone, ``width_err_pct``, over the measured samples that have it),
+        ``roundness_median_abs_pct`` (median ``|roundness_pct|``: the single-view floor against
+        the tape DBH).
     """
     roped = [r for r in records if r.get("gt_dbh_cm") is not None]
     norope = [r for r in records if r.get("gt_dbh_cm") is None]
@@ -246,6 +250,7 @@ def eval_metrics(records: Sequence[dict]) -> dict:
     by_view = _by_base_view(roped)
     werr = [float(r["width_err_pct"]) for r in meas if r.get("width_err_pct") is not None]
     wabs = sorted(abs(w) for w in werr)
+    rnd = [abs(float(r["roundness_pct"])) for r in meas if r.get("roundness_pct") is not None]
 
     return {
         "samples": len(records), "roped": len(roped), "no_rope": len(norope), "measured": len(meas),
@@ -270,6 +275,7 @@ def eval_metrics(records: Sequence[dict]) -> dict:
         "width_median_abs_err_pct": statistics.median(wabs) if wabs else None,
         "width_p90_abs_err_pct": wabs[min(len(wabs) - 1, math.ceil(0.9 * len(wabs)) - 1)] if wabs else None,
         "width_bias_pct": statistics.median(werr) if werr else None,
+        "roundness_median_abs_pct": statistics.median(rnd) if rnd else None,
     }
 
 
@@ -366,8 +372,10 @@ def _accuracy_rows(m: dict) -> list[tuple[str, str]]:
         ("bias (measured - true)", _fmt(m["bias_cm"], "{:+.2f} cm")),
         ("median / p90 |error|", f"{_fmt(m['median_abs_err_cm'], '{:.2f}')} / "
                                  f"{_fmt(m['p90_abs_err_cm'], '{:.2f}')} cm"),
-        ("stem width alone: median / p90 |error|", f"{_fmt(m.get('width_median_abs_err_pct'), '{:.1f}')} / "
+        ("width alone, median / p90 |error|", f"{_fmt(m.get('width_median_abs_err_pct'), '{:.1f}')} / "
                                                    f"{_fmt(m.get('width_p90_abs_err_pct'), '{:.1f}')} %"),
+        ("silhouette vs tape (floor), median", _fmt(m.get("roundness_median_abs_pct"),
+                                                                          "{:.1f} %")),
         ("|err| <= 1 sigma", _fmt(m["coverage_1sigma"], pct=True)),
         ("|err| <= 2 sigma", _fmt(m["coverage_2sigma"], pct=True)),
         ("no-rope scenes correctly refused", f"{_fmt(m['refusal_rate'], pct=True)}"

@@ -18,7 +18,7 @@ from typing import Optional
 import numpy as np
 
 __all__ = ["list_synth_samples", "camera_from_meta", "read_ground_truth", "gt_dbh_cm", "gt_rope_px",
-           "true_rope_diameter_m", "on_true_rope", "WRONG_ROPE_FRACTION"]
+           "true_rope_diameter_m", "gt_silhouette", "on_true_rope", "WRONG_ROPE_FRACTION"]
 
 #: a measured photo's rope (``rope_xy``) farther than this fraction of the photo's long side from
 #: every pixel of the roped tree's true rope is another band: a wrong tree was measured
@@ -85,6 +85,45 @@ def gt_dbh_cm(meta: dict) -> Optional[float]:
     if not k:
         return None
     return float(meta["trees"][int(k) - 1]["dbh_m"]) * 100.0
+
+
+def gt_silhouette(meta: dict, n: int = 4096) -> Optional[tuple[float, float]]:
+    """``(silhouette diameter m, distance m)`` of the roped stem at 1.3 m as this camera sees it.
+
+    The stem's cross-section (the generator's ellipse and harmonics, taper and flare) is sampled
+    at ``n`` angles; its angular width ``alpha`` is taken between the two extreme tangent rays
+    in the plane across the stem axis, and the silhouette diameter is that of the round stem
+    showing the same width, ``2 Zp sin(alpha / 2)`` (``Zp``: the camera's distance to the axis,
+    across it). ``distance`` is the true axis point's ``hypot(x, z)`` in camera coordinates,
+    the pipeline's definition of ``distance_m``. A single view cannot do better than this
+    diameter: it differs from the tape DBH by the stem's out-of-roundness. None without a roped
+    tree or without the record's fields.
+    """
+    tree = next((t for t in meta.get("trees", []) if t.get("id") == meta.get("roped_tree")), None)
+    try:
+        C = np.asarray(meta["t_world_from_cam"], np.float64)
+        ax = np.asarray(tree["axis_world"], np.float64)
+        e1, e2 = np.asarray(tree["e1_world"], np.float64), np.asarray(tree["e2_world"], np.float64)
+        A = np.asarray(tree["position_world"], np.float64) + 1.3 * ax
+        th = np.linspace(0.0, 2 * np.pi, n, endpoint=False)
+        q, ph = float(tree["axis_ratio"]), float(tree["ellipse_phase_rad"])
+        r = q / np.sqrt((q * np.cos(th - ph)) ** 2 + np.sin(th - ph) ** 2)
+        for order, amp, phase in tree.get("harmonics", []):
+            r = r * (1.0 + amp * np.cos(order * th + phase))
+        r = r * float(tree["r_bh_m"]) * (1.0 + float(tree.get("flare", 0.0)) * np.exp(-1.3 / 0.25))
+        pc = np.asarray(tree["bh_point_cam"], np.float64)
+    except (TypeError, KeyError, ValueError):
+        return None
+    P = A[None] + (r * np.cos(th))[:, None] * e1[None] + (r * np.sin(th))[:, None] * e2[None]
+    w = A - C
+    w = w - (w @ ax) * ax
+    zp = float(np.linalg.norm(w))
+    w = w / zp
+    u = np.cross(ax, w)
+    V = P - C
+    phi = np.arctan2(V @ u, V @ w)
+    alpha = float(phi.max() - phi.min())
+    return 2.0 * zp * np.sin(alpha / 2.0), float(np.hypot(pc[0], pc[2]))
 
 
 def gt_rope_px(meta: dict) -> Optional[float]:
