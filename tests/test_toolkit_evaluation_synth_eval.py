@@ -141,8 +141,13 @@ def test_width_alone_is_free_of_the_scale():
     rec = eval_record(s, {"dbh_cm": 36.0, "distance_m": 1.2 * dist, "error": None, "rope_xy": None})
     assert rec["width_err_pct"] == pytest.approx(0.0, abs=1e-3) and rec["roundness_pct"] == pytest.approx(0, abs=1e-3)
     # the right distance, 10 % too wide
-    rec = eval_record(s, {"dbh_cm": 33.0, "distance_m": dist, "error": None, "rope_xy": None})
+    rec = eval_record(s, {"dbh_cm": 33.0, "distance_m": dist, "error": None, "rope_xy": None,
+                          "estimates_cm": {"tangent": 30.0, "cloud": 36.0}})
     assert rec["width_err_pct"] == pytest.approx(10.0, abs=1e-3)
+    by = rec["width_err_pct_by_estimator"]
+    assert by["tangent"] == pytest.approx(0.0, abs=1e-3) and by["cloud"] == pytest.approx(20.0, abs=1e-3)
+    w = eval_metrics([{**rec, "gt_dbh_cm": 30.0}])["width_by_estimator"]
+    assert w["cloud"]["n"] == 1 and w["cloud"]["median_abs_pct"] == pytest.approx(20.0, abs=1e-3)
     recs = [{"gt_dbh_cm": 30.0, "dbh_cm": 30.0, "error": None, "width_err_pct": w} for w in (-1.0, 2.0, -3.0, 10.0)]
     m = eval_metrics(recs)
     assert m["width_median_abs_err_pct"] == pytest.approx(2.5) and m["width_p90_abs_err_pct"] == 10.0

@@ -146,7 +146,7 @@ def eval_record(sample: EvalSample, result: dict) -> dict:
     (the stem's width alone, the scale taken from the truth: the measured DBH-to-distance ratio
     against the true silhouette's, :func:`.synth_samples.gt_silhouette`, - 1, %),
     ``roundness_pct`` (the true silhouette diameter / tape DBH - 1, %: what no single view
-    sees), ``on_true_rope``
+    sees), ``width_err_pct_by_estimator`` (the same for each DBH estimator), ``on_true_rope``
     (:func:`.synth_samples.on_true_rope`, for measured roped samples), then the result's fields.
     """
     gt, d = sample.gt_dbh_cm, result
@@ -155,12 +155,17 @@ def eval_record(sample: EvalSample, result: dict) -> dict:
     dist_err = (100.0 * (d["distance_m"] / sample.gt_distance_m - 1.0)
                 if d.get("distance_m") is not None and sample.gt_distance_m else None)
     sil = gt_silhouette(sample.meta) if gt else None
-    width_err = (100.0 * ((d["dbh_cm"] / d["distance_m"]) / (100.0 * sil[0] / sil[1]) - 1.0)
-                 if sil and d.get("dbh_cm") is not None and d.get("distance_m") else None)
+    def width_err_of(dbh_cm):
+        if not sil or dbh_cm is None or not d.get("distance_m"):
+            return None
+        return 100.0 * ((dbh_cm / d["distance_m"]) / (100.0 * sil[0] / sil[1]) - 1.0)
+    width_err = width_err_of(d.get("dbh_cm"))
+    by_est = {k: width_err_of(v) for k, v in (d.get("estimates_cm") or {}).items() if v is not None}
     return {"sample": sample.index, "gt_dbh_cm": gt, "gt_rope_px": sample.gt_rope_px,
             "gt_base_status": sample.gt_base_status, "gt_distance_m": sample.gt_distance_m,
             "err_cm": (d["dbh_cm"] - gt if gt is not None and d["dbh_cm"] is not None else None),
             "distance_err_pct": dist_err, "width_err_pct": width_err,
+            "width_err_pct_by_estimator": by_est if width_err is not None else None,
             "roundness_pct": 100.0 * (100.0 * sil[0] / gt - 1.0) if sil else None, "on_true_rope": on, **d}
 
 
@@ -276,7 +281,23 @@ def eval_metrics(records: Sequence[dict]) -> dict:
         "width_p90_abs_err_pct": wabs[min(len(wabs) - 1, math.ceil(0.9 * len(wabs)) - 1)] if wabs else None,
         "width_bias_pct": statistics.median(werr) if werr else None,
         "roundness_median_abs_pct": statistics.median(rnd) if rnd else None,
+        "width_by_estimator": _width_by_estimator(meas),
     }
+
+
+def _width_by_estimator(meas: Sequence[dict]) -> dict:
+    """Estimator -> ``{"n", "median_abs_pct", "p90_abs_pct"}`` of its ``width_err_pct``."""
+    per: dict[str, list[float]] = {}
+    for r in meas:
+        for k, v in (r.get("width_err_pct_by_estimator") or {}).items():
+            if v is not None:
+                per.setdefault(k, []).append(abs(float(v)))
+    out = {}
+    for k, v in sorted(per.items()):
+        v.sort()
+        out[k] = {"n": len(v), "median_abs_pct": statistics.median(v),
+                  "p90_abs_pct": v[min(len(v) - 1, math.ceil(0.9 * len(v)) - 1)]}
+    return out
 
 
 #: a scale led by a stem base whose distance is off by more than this (%) where the true base is
@@ -374,6 +395,9 @@ def _accuracy_rows(m: dict) -> list[tuple[str, str]]:
                                  f"{_fmt(m['p90_abs_err_cm'], '{:.2f}')} cm"),
         ("width alone, median / p90 |error|", f"{_fmt(m.get('width_median_abs_err_pct'), '{:.1f}')} / "
                                                    f"{_fmt(m.get('width_p90_abs_err_pct'), '{:.1f}')} %"),
+        *[(f"width alone, {k} estimator", f"{_fmt(v['median_abs_pct'], '{:.1f}')} / "
+                                           f"{_fmt(v['p90_abs_pct'], '{:.1f}')} % ({v['n']})")
+          for k, v in (m.get("width_by_estimator") or {}).items()],
         ("silhouette vs tape (floor), median", _fmt(m.get("roundness_median_abs_pct"),
                                                                           "{:.1f} %")),
         ("|err| <= 1 sigma", _fmt(m["coverage_1sigma"], pct=True)),
