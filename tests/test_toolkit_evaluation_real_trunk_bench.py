@@ -1,0 +1,66 @@
+"""evaluation.real_trunk_bench: outline rasterizing, per-trunk scores, the shipped outlines file."""
+import hashlib
+import json
+
+import numpy as np
+import pytest
+
+from monodbh.toolkit.evaluation import real_trunk_bench as rb
+
+
+def _scene():
+    """A 100 x 60 photo: a trunk at x 20-39 from row 30 to 99, its crown above; a neighbour at
+    x 40-59 merged into the same instance from row 60 down."""
+    inst = np.zeros((100, 60), np.uint16)
+    inst[30:, 20:40] = 1
+    inst[:30, 5:55] = 1                      # crown: above the outline, must not count
+    inst[60:, 40:60] = 1                     # merged neighbour at the outline's rows
+    return inst
+
+
+def test_rasterize_is_pixel_exact_for_a_rectangle():
+    m = rb.rasterize([[20, 30], [39, 30], [39, 99], [20, 99]], (60, 100))
+    assert m.sum() == 20 * 70 and m[30:100, 20:40].all()
+
+
+def test_iou_within_the_outlines_rows_counts_a_merged_neighbour_not_the_crown():
+    trunk = rb.rasterize([[20, 30], [39, 30], [39, 99], [20, 99]], (60, 100))
+    inst = _scene()
+    s = rb.score_trunk(trunk, inst, inst > 0)
+    assert s["width_px"] == pytest.approx(20.0) and s["instance"] == 1
+    assert s["iou"] == pytest.approx(1400 / (1400 + 40 * 20)) and s["pixel_recall"] == 1.0
+    inst[60:, 40:60] = 0
+    assert rb.score_trunk(trunk, inst, inst > 0)["iou"] == pytest.approx(1.0)
+
+
+def test_missed_pixels_are_named_and_the_summary_keeps_wide_trunks():
+    trunk = rb.rasterize([[20, 30], [39, 30], [39, 99], [20, 99]], (60, 100))
+    inst = np.zeros((100, 60), np.uint16)
+    inst[30:65, 20:40] = 1
+    sem = np.full((100, 60), 1, np.uint8)       # "ground" everywhere else
+    sem[inst > 0] = 3
+    s = rb.score_trunk(trunk, inst, sem == 3, sem, ("sky", "ground", "vegetation", "tree"))
+    assert s["pixel_recall"] == pytest.approx(0.5) and s["missed_as"] == {"ground": 0.5}
+    assert s["iou"] == pytest.approx(0.5)
+    narrow = {**s, "width_px": 12.0}
+    summ = rb.summarise([s, narrow])
+    assert summ["trunks"] == 1 and summ["narrow_skipped"] == 1 and summ["recall"] == 1.0
+    assert rb.summarise([narrow]) == {"trunks": 0}
+
+
+def test_the_shipped_outlines_fit_their_photos(shared_data):
+    out = rb.load_outlines()
+    photos = out["photos"]
+    folder = shared_data / "real_trees"
+    assert len(photos) >= 12 and sum(len(e["trunks"]) for e in photos.values()) >= 12
+    for name, e in photos.items():
+        W, H = e["size"]
+        assert e["credit"] and e["licence"] and e["source_page"].startswith("https://")
+        for t in e["trunks"]:
+            p = np.asarray(t["polygon"], float)
+            assert len(p) >= 4 and (p[:, 0] >= -1).all() and (p[:, 0] <= W).all(), name
+            assert (p[:, 1] >= -1).all() and (p[:, 1] <= H).all(), name
+            assert rb.rasterize(p, (W, H)).sum() > 100, (name, t.get("note"))
+        f = folder / name
+        if f.exists():
+            assert hashlib.sha256(f.read_bytes()).hexdigest() == e["sha256"], name

@@ -1,0 +1,223 @@
+"""Real photos with hand-drawn trunk outlines: how well the segmenter finds real trunks.
+
+The 24 real photos of ``../shared/data/real_trees`` have no ground truth of their own. Their main
+visible trunks were outlined by hand, a polygon per visible trunk segment in the photo's pixels
+(``data/real_trees_outlines.json`` next to this module, with each photo's SHA-256, author,
+licence and source page from the folder's MANIFEST.md). This command segments each photo with
+the shipped segmenter and scores every outlined trunk at least :data:`MIN_WIDTH_PX` wide (its
+area over its rows):
+
+- ``iou``: the intersection over union of the outline with the predicted tree instance that
+  overlaps it most, both taken within the outline's rows (so the crown and the limbs above the
+  fork, which the outline leaves out, do not count; a neighbouring trunk merged into the
+  instance at those rows does);
+- ``recall``: a trunk is found when that IoU is at least :data:`FOUND_IOU`;
+- ``pixel_recall``: the share of the outline's pixels the segmenter calls "tree" (any
+  instance), and what it calls the rest (ground, vegetation, sky, ...).
+
+``--draw DIR`` writes each photo with its outlines (yellow), the predicted tree pixels (blue)
+and each trunk's IoU, to check the outlines and see the failures.
+
+Usage::
+
+    python -m monodbh.toolkit.evaluation.real_trunk_bench ../shared/data/real_trees [--draw runs/real_trunks] [--json F]
+
+Imported by nothing (a command); imports the segmenter's runtime and ``monodbh.calib``.
+"""
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+from pathlib import Path
+from typing import Optional, Sequence
+
+import numpy as np
+
+__all__ = ["OUTLINES", "MIN_WIDTH_PX", "FOUND_IOU", "load_outlines", "rasterize", "score_trunk",
+           "score_photo", "summarise", "main"]
+
+#: the outlines shipped with this module
+OUTLINES = Path(__file__).resolve().parent / "data" / "real_trees_outlines.json"
+#: trunks narrower than this (mean width over their rows, px) are not scored
+MIN_WIDTH_PX = 20.0
+#: a trunk counts as found when its best instance has at least this IoU with it
+FOUND_IOU = 0.5
+
+
+def load_outlines(path: str | Path = OUTLINES) -> dict:
+    """The outlines file: ``{"photos": {name: {"size": [W, H], "sha256": ..., "trunks": [{"polygon":
+    [[x, y], ...], "note": ...}, ...]}}, ...}``."""
+    return json.loads(Path(path).read_text())
+
+
+def rasterize(polygon: Sequence[Sequence[float]], size: tuple[int, int]) -> np.ndarray:
+    """(H, W) bool mask of a polygon in pixel coordinates (pixel centres at integers), drawn
+    with 1/16 px vertex precision.
+
+    Examples
+    --------
+    >>> int(rasterize([[2, 2], [5, 2], [5, 5], [2, 5]], (8, 8)).sum())
+    16
+    """
+    import cv2
+
+    W, H = size
+    m = np.zeros((H, W), np.uint8)
+    pts = np.round(np.asarray(polygon, np.float64) * 16).astype(np.int32).reshape(-1, 1, 2)
+    cv2.fillPoly(m, [pts], 1, lineType=cv2.LINE_8, shift=4)
+    return m.astype(bool)
+
+
+def score_trunk(trunk: np.ndarray, instance: np.ndarray, tree_pixels: np.ndarray,
+                semantic: Optional[np.ndarray] = None, classes: Sequence[str] = ()) -> dict:
+    """Scores of one outlined trunk against a segmentation.
+
+    Parameters
+    ----------
+    trunk : (H, W) bool
+        The outline's pixels.
+    instance : (H, W) int
+        Predicted tree instances (0 = none).
+    tree_pixels : (H, W) bool
+        Pixels predicted "tree" (any instance).
+    semantic, classes : optional
+        Semantic ids and their names: what the missed pixels were called.
+
+    Returns
+    -------
+    dict
+        ``width_px`` (area / rows), ``iou`` (best instance, within the outline's rows),
+        ``instance`` (its id, 0 if none), ``pixel_recall``, ``missed_as`` (class -> share of
+        the outline's pixels).
+    """
+    rows = np.nonzero(trunk.any(1))[0]
+    area = int(trunk.sum())
+    if area == 0:
+        return {"width_px": 0.0, "iou": 0.0, "instance": 0, "pixel_recall": 0.0, "missed_as": {}}
+    band = slice(int(rows[0]), int(rows[-1]) + 1)
+    t, inst = trunk[band], instance[band]
+    ids, inter = np.unique(inst[t & (inst > 0)], return_counts=True)
+    best_iou, best = 0.0, 0
+    for k, n in zip(ids, inter):
+        iou = float(n) / float(np.count_nonzero(t | (inst == k)))
+        if iou > best_iou:
+            best_iou, best = iou, int(k)
+    missed = {}
+    if semantic is not None:
+        sem = semantic[band][t & ~tree_pixels[band]]
+        for c, n in zip(*np.unique(sem, return_counts=True)):
+            name = classes[c] if c < len(classes) else ("unassigned" if c == 255 else str(int(c)))
+            missed[name] = round(float(n) / area, 4)
+    return {"width_px": area / len(rows), "iou": best_iou, "instance": best,
+            "pixel_recall": float(np.count_nonzero(trunk & tree_pixels)) / area, "missed_as": missed}
+
+
+def score_photo(rgb: np.ndarray, entry: dict, segmenter) -> tuple[list[dict], object]:
+    """Segment ``rgb`` (H, W, 3) and score each outlined trunk of ``entry`` (all widths;
+    :func:`summarise` keeps the wide ones). Returns ``(scores, segmentation)``."""
+    H, W = rgb.shape[:2]
+    seg = segmenter.predict(rgb, size=(W, H))
+    tree = seg.semantic == seg.tree_class
+    out = []
+    for i, tr in enumerate(entry["trunks"]):
+        s = score_trunk(rasterize(tr["polygon"], (W, H)), seg.instance, tree, seg.semantic, seg.classes)
+        out.append({"trunk": i, "note": tr.get("note", ""), **s})
+    return out, seg
+
+
+def summarise(rows: Sequence[dict], min_width_px: float = MIN_WIDTH_PX) -> dict:
+    """Mean IoU, recall (IoU >= :data:`FOUND_IOU`), mean pixel recall and what the missed
+    pixels were called, over the trunks at least ``min_width_px`` wide."""
+    wide = [r for r in rows if r["width_px"] >= min_width_px]
+    if not wide:
+        return {"trunks": 0}
+    missed: dict[str, float] = {}
+    for r in wide:
+        for k, v in r["missed_as"].items():
+            missed[k] = missed.get(k, 0.0) + v / len(wide)
+    return {"trunks": len(wide), "narrow_skipped": len(rows) - len(wide),
+            "iou_mean": float(np.mean([r["iou"] for r in wide])),
+            "iou_median": float(np.median([r["iou"] for r in wide])),
+            "recall": float(np.mean([r["iou"] >= FOUND_IOU for r in wide])),
+            "pixel_recall_mean": float(np.mean([r["pixel_recall"] for r in wide])),
+            "missed_as": {k: round(v, 4) for k, v in sorted(missed.items(), key=lambda kv: -kv[1])}}
+
+
+def _draw(rgb: np.ndarray, entry: dict, scores: Sequence[dict], seg, path: Path) -> None:
+    import cv2
+
+    img = rgb.astype(np.float32).copy()
+    tree = seg.semantic == seg.tree_class
+    img[tree] = 0.55 * img[tree] + 0.45 * np.array([40, 110, 255], np.float32)
+    img = np.ascontiguousarray(img.clip(0, 255).astype(np.uint8))
+    lw = max(1, round(max(img.shape[:2]) / 600))
+    for tr, s in zip(entry["trunks"], scores):
+        pts = np.round(np.asarray(tr["polygon"]) * 16).astype(np.int32).reshape(-1, 1, 2)
+        cv2.polylines(img, [pts], True, (255, 230, 0), lw, cv2.LINE_AA, shift=4)
+        x, y = np.asarray(tr["polygon"]).mean(0)
+        label = f"{s['iou']:.2f}" if s["width_px"] >= MIN_WIDTH_PX else "narrow"
+        cv2.putText(img, label, (int(x) - 14, int(y)), cv2.FONT_HERSHEY_SIMPLEX, 0.45 * lw, (0, 0, 0), 3 * lw)
+        cv2.putText(img, label, (int(x) - 14, int(y)), cv2.FONT_HERSHEY_SIMPLEX, 0.45 * lw, (255, 255, 255), lw)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    cv2.imwrite(str(path), cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
+
+
+def run(folder: Path, outlines: dict, draw: Optional[Path] = None, segmenter=None) -> list[dict]:
+    """Score every outlined photo of ``folder``; a row per trunk (``photo`` added)."""
+    from monodbh.calib import load_photo
+    from monodbh.models.runtime.segmenter import Segmenter
+
+    seg_net = segmenter or Segmenter()
+    rows = []
+    for name, entry in sorted(outlines["photos"].items()):
+        p = Path(folder) / name
+        if not p.is_file():
+            print(f"{p}: missing, skipped")
+            continue
+        if entry.get("sha256") and hashlib.sha256(p.read_bytes()).hexdigest() != entry["sha256"]:
+            print(f"{p}: not the outlined photo (SHA-256 differs), skipped")
+            continue
+        rgb = load_photo(p)
+        if [rgb.shape[1], rgb.shape[0]] != list(entry["size"]):
+            print(f"{p}: {rgb.shape[1]}x{rgb.shape[0]} px, outlined at {entry['size']}, skipped")
+            continue
+        scores, seg = score_photo(rgb, entry, seg_net)
+        rows += [{"photo": name, **s} for s in scores]
+        if draw is not None:
+            _draw(rgb, entry, scores, seg, Path(draw) / f"{p.stem}_outlines.png")
+    return rows
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m monodbh.toolkit.evaluation.real_trunk_bench",
+                                 description=__doc__.split("\n")[0])
+    ap.add_argument("folder", type=Path, help="the real photos (../shared/data/real_trees)")
+    ap.add_argument("--outlines", type=Path, default=OUTLINES)
+    ap.add_argument("--draw", type=Path, help="write <photo>_outlines.png here")
+    ap.add_argument("--json", type=Path, help="write the per-trunk rows and the summary here")
+    a = ap.parse_args(argv)
+    rows = run(a.folder, load_outlines(a.outlines), a.draw)
+    print("| photo | trunks >= 20 px | mean IoU | found (IoU >= 0.5) | pixel recall |\n|---|---|---|---|---|")
+    for name in sorted({r["photo"] for r in rows}):
+        s = summarise([r for r in rows if r["photo"] == name])
+        if s["trunks"]:
+            print(f"| {name} | {s['trunks']} | {s['iou_mean']:.2f} | {s['recall'] * s['trunks']:.0f} | "
+                  f"{s['pixel_recall_mean']:.2f} |")
+        else:
+            print(f"| {name} | 0 | - | - | - |")
+    s = summarise(rows)
+    if s["trunks"]:
+        print(f"\n{s['trunks']} trunks >= {MIN_WIDTH_PX:g} px ({s['narrow_skipped']} narrower skipped): "
+              f"mean IoU {s['iou_mean']:.3f} (median {s['iou_median']:.3f}), recall {s['recall']:.3f}, "
+              f"pixel recall {s['pixel_recall_mean']:.3f}; missed pixels called: "
+              + ", ".join(f"{k} {v:.3f}" for k, v in s["missed_as"].items()))
+    if a.json:
+        from monodbh.toolkit.outputs.atomic import atomic_write_text
+
+        atomic_write_text(a.json, json.dumps({"rows": rows, "summary": s}, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
