@@ -52,7 +52,7 @@ def test_the_shipped_outlines_fit_their_photos(shared_data):
     out = rb.load_outlines()
     photos = out["photos"]
     folder = shared_data / "real_trees"
-    assert len(photos) >= 12 and sum(len(e["trunks"]) for e in photos.values()) >= 12
+    assert len(photos) == 24 and sum(len(e["trunks"]) for e in photos.values()) >= 24
     for name, e in photos.items():
         W, H = e["size"]
         assert e["credit"] and e["licence"] and e["source_page"].startswith("https://")
