@@ -18,7 +18,7 @@ from .vec import cross3
 
 __all__ = [
     "SPECIES", "Tree", "Ring", "Camera", "Light", "Scene", "sample_scene",
-    "BREAST_HEIGHT_M", "ground_height",
+    "BREAST_HEIGHT_M", "ground_height", "cross_section_shape", "stem_radius_scale",
 ]
 
 BREAST_HEIGHT_M = 1.3
@@ -75,6 +75,30 @@ class Ring:
     tail_len_m: float = 0.0
 
 
+def cross_section_shape(theta: np.ndarray, axis_ratio: float, ell_phase: float, harmonics) -> np.ndarray:
+    """Relative radius ``(N,)`` of a stem's cross-section at angles ``theta`` (radians): an
+    ellipse with semi-axes 1 and ``axis_ratio`` turned by ``ell_phase``, times ``1 + amp
+    cos(order theta + phase)`` for each ``(order, amp, phase)`` row of ``harmonics``."""
+    theta = np.asarray(theta, np.float64)
+    c = np.cos(theta - ell_phase)
+    sn = np.sin(theta - ell_phase)
+    q = axis_ratio
+    r = q / np.sqrt((q * c) ** 2 + sn ** 2)      # ellipse with semi-axes 1 and q
+    for order, amp, ph in harmonics:
+        r = r * (1.0 + amp * np.cos(order * theta + ph))
+    return r
+
+
+def stem_radius_scale(s: np.ndarray, r_bh: float, taper: float, flare: float, height_m: float) -> np.ndarray:
+    """Radius scale (metres) at heights ``s`` along a stem; tapers to a point at the top."""
+    s = np.asarray(s, np.float64)
+    r = r_bh * (1.0 - taper * (s - BREAST_HEIGHT_M))
+    r = r * (1.0 + flare * np.exp(-np.clip(s, 0, None) / 0.25))
+    top = np.clip((height_m - s) / (0.35 * height_m), 0.0, 1.0)
+    r = r * (0.15 + 0.85 * top) * np.where(s > height_m, 0.0, 1.0)
+    return np.maximum(r, 0.004)
+
+
 @dataclass
 class Tree:
     """One tree; the stem cross-section radius is ``r(theta, s) = base_r(s) * shape(theta)``."""
@@ -106,23 +130,11 @@ class Tree:
     # ----------------------------------------------------------------- geometry
     def shape(self, theta: np.ndarray) -> np.ndarray:
         """Relative radius of the cross-section at angle ``theta`` (radians), ``(N,)``."""
-        theta = np.asarray(theta, np.float64)
-        c = np.cos(theta - self.ell_phase)
-        sn = np.sin(theta - self.ell_phase)
-        q = self.axis_ratio
-        r = q / np.sqrt((q * c) ** 2 + sn ** 2)      # ellipse with semi-axes 1 and q
-        for order, amp, ph in self.harmonics:
-            r = r * (1.0 + amp * np.cos(order * theta + ph))
-        return r
+        return cross_section_shape(theta, self.axis_ratio, self.ell_phase, self.harmonics)
 
     def base_r(self, s: np.ndarray) -> np.ndarray:
         """Radius scale along the stem (metres); tapers to a point at the top."""
-        s = np.asarray(s, np.float64)
-        r = self.r_bh * (1.0 - self.taper * (s - BREAST_HEIGHT_M))
-        r = r * (1.0 + self.flare * np.exp(-np.clip(s, 0, None) / 0.25))
-        top = np.clip((self.height_m - s) / (0.35 * self.height_m), 0.0, 1.0)
-        r = r * (0.15 + 0.85 * top) * np.where(s > self.height_m, 0.0, 1.0)
-        return np.maximum(r, 0.004)
+        return stem_radius_scale(s, self.r_bh, self.taper, self.flare, self.height_m)
 
     def radius(self, theta: np.ndarray, s: np.ndarray) -> np.ndarray:
         return self.base_r(s) * self.shape(theta)

@@ -99,18 +99,19 @@ def gt_silhouette(meta: dict, n: int = 4096) -> Optional[tuple[float, float]]:
     diameter: it differs from the tape DBH by the stem's out-of-roundness. None without a roped
     tree or without the record's fields.
     """
+    from monodbh.models.synthetic.scene import BREAST_HEIGHT_M, cross_section_shape, stem_radius_scale
+
     tree = next((t for t in meta.get("trees", []) if t.get("id") == meta.get("roped_tree")), None)
     try:
         C = np.asarray(meta["t_world_from_cam"], np.float64)
         ax = np.asarray(tree["axis_world"], np.float64)
         e1, e2 = np.asarray(tree["e1_world"], np.float64), np.asarray(tree["e2_world"], np.float64)
-        A = np.asarray(tree["position_world"], np.float64) + 1.3 * ax
+        A = np.asarray(tree["position_world"], np.float64) + BREAST_HEIGHT_M * ax
         th = np.linspace(0.0, 2 * np.pi, n, endpoint=False)
-        q, ph = float(tree["axis_ratio"]), float(tree["ellipse_phase_rad"])
-        r = q / np.sqrt((q * np.cos(th - ph)) ** 2 + np.sin(th - ph) ** 2)
-        for order, amp, phase in tree.get("harmonics", []):
-            r = r * (1.0 + amp * np.cos(order * th + phase))
-        r = r * float(tree["r_bh_m"]) * (1.0 + float(tree.get("flare", 0.0)) * np.exp(-1.3 / 0.25))
+        r = cross_section_shape(th, float(tree["axis_ratio"]), float(tree["ellipse_phase_rad"]),
+                                tree.get("harmonics", []))
+        r = r * float(stem_radius_scale(BREAST_HEIGHT_M, float(tree["r_bh_m"]), float(tree.get("taper", 0.0)),
+                                        float(tree.get("flare", 0.0)), float(tree.get("height_m", 1e3))))
         pc = np.asarray(tree["bh_point_cam"], np.float64)
     except (TypeError, KeyError, ValueError):
         return None
