@@ -14,7 +14,7 @@ Usage::
 
     python -m monodbh.toolkit.evaluation.position_bench data/bench --count 40 [--workers 2] [--seed 25]
 
-Imports the library, ``.synth_eval`` and Pillow; never imported by it.
+Imports the library, ``.synth_eval``, ``.phone_exif`` and Pillow; never imported by it.
 """
 from __future__ import annotations
 
@@ -22,7 +22,6 @@ import argparse
 import math
 import tempfile
 from dataclasses import replace
-from fractions import Fraction
 from pathlib import Path
 from typing import Optional, Sequence
 
@@ -70,32 +69,12 @@ def _distance_m(lat1: float, lon1: float, lat2: float, lon2: float) -> float:
     return float(Geod(ellps="WGS84").inv(lon1, lat1, lon2, lat2)[2])
 
 
-def _rational(x: float, den: int = 10000):
-    from PIL.TiffImagePlugin import IFDRational
-
-    f = Fraction(x).limit_denominator(den)
-    return IFDRational(f.numerator, f.denominator)
-
-
 def exif_with_gps(lat_deg: float, lon_deg: float, heading_deg: float):
-    """A Pillow ``Exif`` with GPS latitude/longitude (degrees, minutes, seconds as rationals,
-    N/S/E/W) and a true-north ``GPSImgDirection``, as phones write them."""
-    from PIL import Image
-    from PIL.TiffImagePlugin import IFDRational
+    """A Pillow ``Exif`` with GPS latitude/longitude and a true-north ``GPSImgDirection``, as
+    phones write them (:func:`.phone_exif.exif_for`)."""
+    from .phone_exif import exif_for
 
-    def dms(deg):
-        a = abs(deg)
-        d = int(a)
-        m = int((a - d) * 60)
-        s = (a - d - m / 60) * 3600
-        return (IFDRational(d, 1), IFDRational(m, 1), IFDRational(int(round(s * 10000)), 10000))
-
-    ex = Image.Exif()
-    gps = ex.get_ifd(0x8825)
-    gps[1], gps[2] = ("N" if lat_deg >= 0 else "S"), dms(lat_deg)
-    gps[3], gps[4] = ("E" if lon_deg >= 0 else "W"), dms(lon_deg)
-    gps[16], gps[17] = "T", _rational(heading_deg % 360.0, 100)
-    return ex
+    return exif_for(lat=lat_deg, lon=lon_deg, heading=heading_deg % 360.0, heading_ref="T")
 
 
 def position_errors(folder: Path, indices: Sequence[int], *, workers: int = 1, seed: int = 25,
