@@ -49,19 +49,12 @@ def broken_session(models_dir=None):
 def cluster(tmp_path_factory):
     """A scheduler with 2 worker processes (1 thread each) that can import this test module."""
     sessions = tmp_path_factory.mktemp("sessions")
-    old = {k: os.environ.get(k) for k in ("PYTHONPATH", "MONODBH_TEST_SESSIONS")}
-    os.environ["PYTHONPATH"] = os.pathsep.join(p for p in (str(HERE), old["PYTHONPATH"]) if p)
-    os.environ["MONODBH_TEST_SESSIONS"] = str(sessions)
-    try:
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("PYTHONPATH", str(HERE), prepend=os.pathsep)
+        mp.setenv("MONODBH_TEST_SESSIONS", str(sessions))
         with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
                                       dashboard_address=None, silence_logs=40) as lc:
             yield lc.scheduler_address, sessions
-    finally:
-        for k, v in old.items():
-            if v is None:
-                os.environ.pop(k, None)
-            else:
-                os.environ[k] = v
 
 
 def _rows(path: Path) -> list[dict]:
