@@ -10,10 +10,11 @@ from monodbh.models.modeling import build
 from monodbh.models.runtime.stem_base import STRIP_H, STRIP_ROWS_PER_W, STRIP_W
 
 
-def fake_base_sample(seed=0, W=160, H=240, dist=4.0, r=0.15, cam_h=1.5, hide_base=False):
+def fake_base_sample(seed=0, W=160, H=240, dist=4.0, r=0.15, cam_h=1.5, hide_base=False, bush_h_m=0.6):
     """A level camera ``cam_h`` m above flat ground; one vertical round stem of radius ``r`` at
     ``dist`` m straight ahead. The stem's front contact with the ground is at row
-    ``cy + f cam_h / (dist - r)``; ``hide_base`` puts a bush in front of it."""
+    ``cy + f cam_h / (dist - r)``; ``hide_base`` puts a bush 1 m in front of it that hides the
+    stem up to ``bush_h_m`` above the ground."""
     rng = np.random.default_rng(seed)
     f, cx, cy = 200.0, W / 2 - 0.5, H / 2 - 0.5
     v, u = np.mgrid[0:H, 0:W].astype(np.float64)
@@ -30,7 +31,7 @@ def fake_base_sample(seed=0, W=160, H=240, dist=4.0, r=0.15, cam_h=1.5, hide_bas
     rgb[stem] = np.array([120, 90, 60], np.uint8) + rng.integers(0, 20, (int(stem.sum()), 3)).astype(np.uint8)
     vb = cy + f * cam_h / (dist - r)
     if hide_base:
-        bush = (np.abs(u - cx) < 3 * r * f / dist) & (np.abs(v - vb) < 12)
+        bush = (np.abs(u - cx) < 3 * r * f / dist) & (v > vb - f * bush_h_m / dist) & (v < vb + 12)
         depth[bush] = dist - 1.0
         rgb[bush] = (20, 120, 20)
     tree = {"id": 1, "dbh_m": 2 * r, "r_bh_m": r, "position_world": [0.0, dist, 0.0],
@@ -61,6 +62,24 @@ def test_ground_truth_strip_label_is_the_base_row():
     # jittered strips keep a consistent label (the base's row on the jittered strip)
     exj = tree_strips(s, np.random.default_rng(0), StemBaseTrainConfig(), 4)
     assert len(exj) == 4 and all(abs(e["row"] - ex[0]["row"]) < 8 for e in exj)
+
+
+def test_base_in_grass_is_labelled_where_it_is():
+    """A foot hidden by clutter lower than ``clutter_height_m`` (grass, litter) is labelled at the
+    true contact row; a bush that hides more of the stem, or clutter with the option off, hides it."""
+    from monodbh.models.synthetic import base_in_view
+    from monodbh.models.training.stem_base import StemBaseTrainConfig, tree_strips
+
+    visible, _ = fake_base_sample()
+    grass, _ = fake_base_sample(hide_base=True, bush_h_m=0.2)
+    row = tree_strips(visible, None, StemBaseTrainConfig(), 1)[0]["row"]
+    assert row > 0
+    assert tree_strips(grass, None, StemBaseTrainConfig(), 1)[0]["row"] == pytest.approx(row, abs=1e-6)
+    assert tree_strips(grass, None, StemBaseTrainConfig(clutter_height_m=0.0), 1)[0]["row"] == -1.0
+    for h, expected in ((0.1, True), (0.2, True), (0.45, False), (0.6, False)):
+        s, vb = fake_base_sample(hide_base=True, bush_h_m=h)
+        xy = np.array([79.5, vb])
+        assert base_in_view(s["meta"], s["meta"]["trees"][0], s["depth"], xy, 15.0, 0.3) is expected, h
 
 
 def test_stem_base_onnx_matches_torch(tmp_path):
@@ -107,3 +126,14 @@ def test_train_stem_base_smoke_resume_and_hooks(tmp_path):
     assert base_metrics(z[1:], np.array([40.0]))["recall"] == 0.0
 
 
+
+
+def test_true_base_pixel_tells_a_base_in_grass_from_a_hidden_one():
+    from monodbh.toolkit.evaluation.taps import true_base_pixel
+
+    for h, status in ((0.2, "in_clutter"), (0.6, "occluded")):
+        s, _ = fake_base_sample(hide_base=True, bush_h_m=h)
+        assert true_base_pixel(s["meta"], s["depth"])[1] == "occluded"
+        assert true_base_pixel(s["meta"], s["depth"], clutter_height_m=0.3)[1] == status
+    s, _ = fake_base_sample()
+    assert true_base_pixel(s["meta"], s["depth"], clutter_height_m=0.3)[1] == "visible"

@@ -99,6 +99,7 @@ def test_eval_metrics_by_base_view_counts_base_use_and_wrong_bases():
     recs = [rec("visible", "stem_base+network", 2.0), rec("visible", "network", -20.0, 24.0),
             rec("occluded", "stem_base_weak", 40.0, 42.0), rec("occluded", "network", 5.0),
             rec("outside", "stem_base", -16.0), rec("outside", "rope_diameter+network", 3.0),
+            rec("in_clutter", "stem_base", 20.0, 36.0),
             {"gt_dbh_cm": 30.0, "dbh_cm": None, "error": "x: no rope", "gt_base_status": "visible"}]
     m = eval_metrics(recs)
     v = m["by_base_view"]
@@ -106,6 +107,8 @@ def test_eval_metrics_by_base_view_counts_base_use_and_wrong_bases():
     assert v["visible"]["wrong_base"] == 0 and v["visible"]["median_abs_distance_err_pct"] == 11.0
     assert (v["occluded"]["base_used"], v["occluded"]["wrong_base"]) == (1, 1)
     assert (v["outside"]["base_used"], v["outside"]["wrong_base"]) == (1, 1)
+    # a base in grass is the base (imprecise, not wrong): listed apart, not counted as wrong
+    assert (v["in_clutter"]["roped"], v["in_clutter"]["base_used"], v["in_clutter"]["mae_cm"]) == (1, 1, 6.0)
     assert m["wrong_base"] == 2
 
 

@@ -65,17 +65,21 @@ def test_user_tapped_stem_base_sets_the_scale():
 
 
 @pytest.mark.slow
-def test_circle_only_checks_the_tangent_estimate_when_the_scale_is_precise():
-    """Network perception: with a tapped stem base the DBH is the tangent estimate (the tree
-    network's circle stays in ``estimates_cm`` as a check); with a depth-network scale the two
-    are combined."""
+def test_circle_only_checks_the_tangent_estimate():
+    """Network perception: the DBH is the tangent estimate (the tree network's circle stays in
+    ``estimates_cm`` as a check); with ``circle_check_only`` off, a tapped stem base still gives
+    the tangent estimate and a depth-network scale combines the two."""
+    from dataclasses import replace
+
     from monodbh.calib import Camera
+    from monodbh.toolkit.geometry import GeometryConfig
     from monodbh.models.synthetic import generate_sample
     from monodbh.toolkit.evaluation.ground_truth import perception_from_ground_truth
     from monodbh.toolkit.evaluation.taps import true_base_pixel
     from monodbh.toolkit.geometry import measure_from_perception
 
     pytest.importorskip("embreex")
+    averaged = replace(GeometryConfig(), dbh=replace(GeometryConfig().dbh, circle_check_only=False))
     done = 0
     for i in range(16):
         s = generate_sample(23, i, (640, 480))
@@ -90,9 +94,10 @@ def test_circle_only_checks_the_tangent_estimate_when_the_scale_is_precise():
         p.source = "network"
         p.depth_is_metric = False
         p.z2 = np.where(p.z2 > 0, p.z1 + 1.6 * (p.z2 - p.z1), 0)      # a circle that is too wide
-        r_net = measure_from_perception(p)
+        r_net = measure_from_perception(p, config=averaged)
+        r_net_check = measure_from_perception(p)
         p.base_xy = xy
-        r_tap = measure_from_perception(p)
+        r_tap = measure_from_perception(p, config=averaged)
         if r_net.error or r_tap.error or "cloud" not in r_tap.estimates_cm or "cloud" not in r_net.estimates_cm:
             continue
         assert r_tap.scale_source.startswith("stem_base_user")
@@ -101,6 +106,9 @@ def test_circle_only_checks_the_tangent_estimate_when_the_scale_is_precise():
         assert "circle_as_check" not in r_net.flags
         t, c = r_net.estimates_cm["tangent"], r_net.estimates_cm["cloud"]
         assert min(t, c) < r_net.dbh_cm < max(t, c)
+        # by default the circle only checks, whatever leads the scale
+        assert "circle_as_check" in r_net_check.flags
+        assert r_net_check.dbh_cm == pytest.approx(r_net_check.estimates_cm["tangent"], rel=1e-9)
         done += 1
         break
     assert done == 1

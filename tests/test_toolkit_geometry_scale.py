@@ -63,11 +63,11 @@ def test_visible_stem_cap_follows_its_configuration():
     assert not capped_by_visible_stem(5.2, "network", None)
 
 
-def _rope(thickness_px, native_px=None, contrast=0.2, diameter_m=0.01):
+def _rope(thickness_px, native_px=None, contrast=0.2, diameter_m=0.01, edges=False):
     from monodbh.calib import Camera
     cam = Camera(np.array([[1000.0, 0, 320], [0, 1000.0, 240], [0, 0, 1]]), None, (640, 480))
     return SimpleNamespace(rope_diameter_m=diameter_m, rope_thickness_px=thickness_px,
-                           rope_thickness_native_px=native_px, rope_contrast=contrast,
+                           rope_thickness_native_px=native_px, rope_contrast=contrast, rope_thickness_edges=edges,
                            rope_dir=np.array([1.0, 0.0]), rope_xy=np.array([320.0, 240.0]), camera=cam)
 
 
@@ -78,6 +78,9 @@ def test_the_rope_as_a_ruler_and_its_gates():
     name, (lam, sig) = candidate_rope_diameter(_rope(T), axis, _tables(), flags)
     assert name == "rope_diameter" and flags == []
     assert lam == pytest.approx(0.01 * 1000 / 8.0 + 0.005, rel=1e-4) and sig == _tables().network["rope_diameter"]
+    # read edge to edge, the thickness is the tube's own (no half-maximum correction)
+    _, (lam_e, _) = candidate_rope_diameter(_rope(8.0, edges=True), axis, _tables(), [])
+    assert lam_e == pytest.approx(lam, rel=1e-4)
     # too thin where it was measured (the native pixels decide), too faint
     assert candidate_rope_diameter(_rope(T, native_px=4.0), axis, _tables(), flags) is None
     assert candidate_rope_diameter(_rope(T, contrast=0.05), axis, _tables(), flags) is None

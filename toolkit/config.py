@@ -26,6 +26,9 @@ class MeasureConfig:
     rope_full_resolution : with a known rope diameter, read the rope's thickness again on the
         full-resolution photo when it is larger than the working image
         (docs/decisions/work-resolution.md).
+    marker_edges : with a known marker width, read the marker's thickness edge to edge (its
+        silhouette, :func:`~monodbh.toolkit.rope.marker_edges.marker_thickness`) instead of the
+        red-ness profile's half-maximum width (docs/decisions/rope-ruler.md).
     overlap_networks : run the segmenter and the depth network on a background thread while the
         band detector searches the rope (docs/decisions/threads.md); off: they run when first needed.
     depth_mirror_average : the depth network sees the photo and its mirror image and averages them
@@ -44,9 +47,10 @@ class MeasureConfig:
     """
     work_long_side_px: int = 1600
     rope_full_resolution: bool = True
+    marker_edges: bool = False
     overlap_networks: bool = True
     depth_mirror_average: bool = True
-    stem_base_threshold: float = 0.3
+    stem_base_threshold: float = 0.7
     ort_spin: bool = field(default_factory=lambda: os.environ.get("MONODBH_ORT_SPIN", "0") == "1")
     sideways_score_max: float = -60.0
     rope: RopeConfig = field(default_factory=RopeConfig)

@@ -216,7 +216,7 @@ def _measure_frame(path, rgb, camera, req: _Request, sess: Session, tm: dict, fr
     from .rope.ruler import rope_ruler
     ruler = rope_ruler(rgb, camera, frame, choice.rope, is_line=choice.source.is_line,
                        diameter_known=bool(req.rope_diameter_m),
-                       full_resolution=sess.config.rope_full_resolution, timings=tm)
+                       full_resolution=sess.config.rope_full_resolution, edges=sess.config.marker_edges, timings=tm)
     silhouette = _TreeSilhouette(sess.trees, frame, stem.tree_mask, tm)
     perc = _perception(frame, choice, stem, ruler, seg.semantic == 1, depth_job, silhouette, sess, req)
     res = measure_from_perception(perc, str(path), timings=tm, config=sess.config.geometry)
@@ -380,7 +380,7 @@ def _perception(frame: WorkFrame, choice: RopeChoice, stem: _Stem, ruler, ground
         rope_length_px=_polyline_span(rope.polyline) if choice.source.spans_stem else None,
         rope_band_mask=stem.band_mask,
         rope_thickness_px=ruler.thickness_px, rope_thickness_native_px=ruler.thickness_native_px,
-        rope_contrast=ruler.contrast, rope_diameter_m=req.rope_diameter_m,
+        rope_contrast=ruler.contrast, rope_thickness_edges=ruler.edges, rope_diameter_m=req.rope_diameter_m,
         extra={"tree_mask_from_rope": stem.tid == 0})
 
 

@@ -94,7 +94,7 @@ def stem_base_spec(size: str) -> ModelSpec:
         extra={"strip_doc": "monodbh.models.runtime.stem_base.stem_strip: from the stem's mid-point at the "
                             "rope, straight down the stem's image direction; row 0 = the rope",
                "rows_per_width": STRIP_ROWS_PER_W, "span_widths": STRIP_SPAN_W,
-               "p_threshold": 0.5})
+               "p_threshold": 0.7})
 
 
 @register("stem_base", spec=stem_base_spec)

@@ -133,7 +133,7 @@ def _models_folder(models_dir: str | Path) -> Path:
 
 
 def load_networks(models_dir: str | Path | None = None, *, threads: int = 2, depth_flip_tta: bool = True,
-                  stem_base_threshold: float = 0.3, spin: bool = False) -> Networks:
+                  stem_base_threshold: float = 0.7, spin: bool = False) -> Networks:
     """Load the shipped networks of ``models_dir`` and the error model measured for them.
 
     Parameters

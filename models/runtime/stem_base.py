@@ -186,7 +186,7 @@ class StemBaseFinder(OnnxPredictor):
     threads, manifest, spin : as :class:`~monodbh.models.runtime.common.OnnxPredictor`.
     threshold : float, optional
         ``p_base`` needed to report a base (default: the manifest's ``extra.p_threshold``,
-        else 0.5; the pipeline's, ``docs/decisions/stem-base.md``).
+        else 0.7; the pipeline's, ``docs/decisions/stem-base.md``).
 
     Examples
     --------
@@ -202,7 +202,7 @@ class StemBaseFinder(OnnxPredictor):
                  spin: bool = False) -> None:
         super().__init__(self.kind, path, threads, manifest, spin=spin)
         extra = self.spec.get("extra", {}) or {}
-        self.threshold = float(threshold if threshold is not None else extra.get("p_threshold", 0.5))
+        self.threshold = float(threshold if threshold is not None else extra.get("p_threshold", 0.7))
 
     def logits(self, rgb: np.ndarray, top_xy, along, width_px: float) -> np.ndarray:
         """Raw ``(STRIP_H + 1,)`` logits for the strip below ``top_xy``."""

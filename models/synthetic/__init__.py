@@ -15,7 +15,7 @@ import numpy as np
 
 from .scene import BREAST_HEIGHT_M, Scene, sample_scene
 
-__all__ = ["generate_sample", "iter_samples", "sample_seed", "scene_meta", "stem_base_pixel", "BREAST_HEIGHT_M"]
+__all__ = ["generate_sample", "iter_samples", "sample_seed", "scene_meta", "stem_base_pixel", "base_in_view", "BREAST_HEIGHT_M"]
 
 
 def sample_seed(seed: int, index: int) -> int:
@@ -58,6 +58,85 @@ def stem_base_pixel(meta: dict, tree: dict, depth: np.ndarray | None = None, *, 
     if depth is not None and abs(float(depth[int(round(v)), int(round(u))]) - pc[2]) > tolerance_m:
         return xy, "occluded"
     return xy, "visible"
+
+
+def _stem_front_cam(meta: dict, tree: dict, height_m: float) -> tuple[np.ndarray, float]:
+    """Camera-frame point (3,) on the stem's axis ``height_m`` above its base (vertical height),
+    and the stem's radius there (the radius at 1.3 m; the flare is left out)."""
+    base = np.asarray(tree["position_world"], float)
+    axis = np.asarray(tree.get("axis_world", (0.0, 0.0, 1.0)), float)
+    axis = axis / np.linalg.norm(axis)
+    p = base + (height_m / max(axis[2], 0.2)) * axis
+    R = np.asarray(meta["R_world_from_cam"], float)
+    t = np.asarray(meta["t_world_from_cam"], float)
+    return R.T @ (p - t), float(tree["r_bh_m"])
+
+
+def base_in_view(meta: dict, tree: dict, depth: np.ndarray, base_xy, width_px: float,
+                 clutter_height_m: float = 0.3) -> bool:
+    """Whether a person sees where a stem meets the ground, grass tufts and leaf litter included.
+
+    Parameters
+    ----------
+    meta, tree : sample record and one of its ``trees`` (as :func:`stem_base_pixel`).
+    depth : (H, W) ground-truth z-depth (m).
+    base_xy : (2,) the stem's front ground contact in the photo (:func:`stem_base_pixel`).
+    width_px : the stem's width in the photo near the ground (pixels).
+    clutter_height_m : clutter lower than this (m) does not hide the base.
+
+    Returns
+    -------
+    True where the base is seen across the stem's front half (its centre and a quarter of
+    ``width_px`` to each side not hidden by anything nearer than the stem's radius, at least
+    0.3 m), or where the stem's front is seen across its front half at two heights 5 cm apart up
+    to ``clutter_height_m`` above the ground (the foot is then read through the clutter; gaps
+    in a bush's foliage do not count). A bush that hides the stem higher up hides the base.
+
+    Examples
+    --------
+    >>> xy, status = stem_base_pixel(meta, tree, depth)               # doctest: +SKIP
+    >>> base_in_view(meta, tree, depth, xy, 40.0)                     # doctest: +SKIP
+    True
+    """
+    import cv2
+    H, W = depth.shape
+    bxy = np.asarray(base_xy, np.float64).reshape(2)
+    if not (0 <= bxy[0] <= W - 1 and 0 <= bxy[1] <= H - 1):
+        return False
+    K = np.asarray(meta["K"], float)
+    dist = np.asarray(meta.get("dist") or np.zeros(5), float)
+
+    def project(pc):
+        uv, _ = cv2.projectPoints(pc[None], np.zeros(3), np.zeros(3), K, dist)
+        return uv.reshape(2)
+
+    def depth_at(p):
+        x, y = int(round(p[0])), int(round(p[1]))
+        return float(depth[y, x]) if (0 <= x < W and 0 <= y < H) else -1.0
+
+    p0, r = _stem_front_cam(meta, tree, 0.0)
+    p1, _ = _stem_front_cam(meta, tree, 0.5)
+    if p0[2] <= 0.3 or p1[2] <= 0.3:
+        return False
+    a = project(p1) - project(p0)
+    a = a / (np.linalg.norm(a) + 1e-12)
+    u = np.array([a[1], -a[0]])                     # across the stem in the photo
+    tol = max(0.3, 0.5 * r + 0.1)
+    z0 = depth_at(bxy)
+    if abs(z0 - (p0[2] - r)) <= tol and all(depth_at(bxy + f * width_px * u) >= z0 - max(0.3, r)
+                                            for f in (-0.25, 0.25)):
+        return True
+    seen_below = False
+    for h in np.arange(0.05, clutter_height_m + 0.05 + 1e-6, 0.05):
+        pc, _ = _stem_front_cam(meta, tree, float(h))
+        if pc[2] <= 0.3:
+            return False
+        c = project(pc)
+        seen = all(abs(depth_at(c + f * width_px * u) - (pc[2] - r)) <= tol for f in (-0.25, 0.0, 0.25))
+        if seen and seen_below:
+            return True
+        seen_below = seen and h <= clutter_height_m + 1e-6
+    return False
 
 
 def scene_meta(scene: Scene, out: dict) -> dict:

@@ -4,8 +4,12 @@ Examples (:func:`tree_strips`): for each stem of an undistorted ``dbh synth`` sa
 the photo at 1.3 m (the roped stem first), the strip of :func:`monodbh.models.runtime.stem_base.stem_strip`
 is cut from the stem's axis point at 1.3 m, straight down its projected axis, scaled by its
 width there (``2 f r / z``). The label is the strip row of the stem's front ground contact
-(:func:`monodbh.models.synthetic.stem_base_pixel`) when it is visible (the ground-truth depth
-there is the point's own, within 0.3 m) and inside the strip, else the "no visible base" class. Training strips are cut with
+(:func:`monodbh.models.synthetic.stem_base_pixel`) when it is in view and inside the strip, else the
+"no visible base" class. In view (:func:`monodbh.models.synthetic.base_in_view`): the stem's front is seen (the ground-truth
+depth there is its own) across the front half of the stem at the ground, or anywhere up to
+``clutter_height_m`` above it, so that a foot in grass tufts or leaf litter is labelled where it
+is, as a person reads it through the clutter; a bush that hides the stem higher up hides the
+base (decision record ``docs/decisions/stem-base.md``). Training strips are cut with
 the geometry jittered as the pipeline's stem edges err (mid-point 0.1 / 0.3 widths across /
 along, width 8 %, direction 2.5 deg), and photometric augmentation and mirror flips on top.
 
@@ -32,7 +36,7 @@ from torch.nn import functional as F
 from monodbh.models.modeling.registry import build
 from monodbh.models.runtime.stem_base import (STRIP_H, STRIP_ROWS_PER_W, decode_base_logits, stem_strip,
                                          strip_feed)
-from monodbh.models.synthetic import stem_base_pixel
+from monodbh.models.synthetic import base_in_view, stem_base_pixel
 from monodbh.models.training.common import (AugmentConfig, DataSource, config_from_dict, make_source,
                                             photometric, register_calibration, register_eval, select_device,
                                             train_loop, warmup_cosine)
@@ -58,6 +62,9 @@ class StemBaseTrainConfig:
     jitters: int = 4               #: jittered strips per stem in the training bank
     max_trees: int = 6             #: stems per sample (the roped one first)
     min_width_px: float = 4.0
+    #: a base hidden by clutter lower than this (grass, litter) still counts as in view (m; 0: only
+    #: a base seen across the stem's front half)
+    clutter_height_m: float = 0.3
     val_n: int = 100               #: samples held out (the source's last ones) when no val data
     label_sigma_rows: float = 1.0
     angle_jitter_deg: float = 2.5  #: 1-sigma of the strip's direction error (the pipeline's: 1.3 deg median, 3.9 q90)
@@ -144,13 +151,8 @@ def tree_strips(sample: dict[str, Any], rng: np.random.Generator | None, cfg: St
                 continue
         bxy, status = stem_base_pixel(meta, tree, depth)
         n_trees += 1
-        if status == "visible":
-            # ... and the base across the stem's front half
-            for f in (-0.25, 0.25):
-                p = bxy + f * width * u
-                if not (0 <= p[0] < Wimg and 0 <= p[1] < Himg) or depth[int(p[1]), int(p[0])] < \
-                        float(depth[int(round(bxy[1])), int(round(bxy[0]))]) - max(0.3, float(tree["r_bh_m"])):
-                    status = "occluded"
+        if status != "outside" and depth is not None:
+            status = "visible" if base_in_view(meta, tree, depth, bxy, width, cfg.clutter_height_m) else "occluded"
         for j in range(jitters):
             t_, a_, w_ = top, along, width
             if rng is not None:

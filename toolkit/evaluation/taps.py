@@ -4,7 +4,7 @@
 photo: the true pixel from a ``dbh synth`` sample's ground truth plus seeded Gaussian noise.
 
 Imported by :mod:`.synth_eval` and :mod:`.error_model`; imports numpy and the scene generator's
-``stem_base_pixel`` (the true base pixel).
+``stem_base_pixel`` (the true base pixel) and ``base_in_view``.
 """
 from __future__ import annotations
 
@@ -15,7 +15,8 @@ import numpy as np
 __all__ = ["true_base_pixel", "simulated_tap", "simulated_rope_tap", "sample_base_tap", "sample_rope_tap"]
 
 
-def true_base_pixel(meta: dict, depth: np.ndarray | None = None, *, tolerance_m: float = 0.3):
+def true_base_pixel(meta: dict, depth: np.ndarray | None = None, *, tolerance_m: float = 0.3,
+                    clutter_height_m: float | None = None):
     """Where the roped stem meets the ground in the photo: the front contact point.
 
     Parameters
@@ -23,11 +24,14 @@ def true_base_pixel(meta: dict, depth: np.ndarray | None = None, *, tolerance_m:
     meta : sample record (``K``, ``dist``, ``R_world_from_cam``, ``t_world_from_cam``, ``trees``).
     depth : (H, W) ground-truth z-depth; when given, the point counts as visible only where the
         depth there is within ``tolerance_m`` of the point's own depth.
+    clutter_height_m : when given (with ``depth``), a hidden base that a person still reads
+        through clutter lower than this (grass, litter; :func:`monodbh.models.synthetic.base_in_view`)
+        gets the status ``"in_clutter"``.
 
     Returns
     -------
     ``(xy, status)``: xy (2,) photo pixel (None when outside the photo), status ``"visible"``,
-    ``"occluded"``, ``"outside"`` or ``"no_rope"``.
+    ``"in_clutter"``, ``"occluded"``, ``"outside"`` or ``"no_rope"``.
 
     Examples
     --------
@@ -39,7 +43,22 @@ def true_base_pixel(meta: dict, depth: np.ndarray | None = None, *, tolerance_m:
     if not tid:
         return None, "no_rope"
     tree = next(t for t in meta["trees"] if t["id"] == tid)
-    return stem_base_pixel(meta, tree, depth, tolerance_m=tolerance_m)
+    xy, status = stem_base_pixel(meta, tree, depth, tolerance_m=tolerance_m)
+    if status == "occluded" and clutter_height_m is not None and depth is not None:
+        from monodbh.models.synthetic import base_in_view
+
+        z = _base_depth(meta, tree)
+        width = 2.0 * float(np.asarray(meta["K"], float)[0, 0]) * float(tree["r_bh_m"]) / max(z, 0.05)
+        if base_in_view(meta, tree, depth, xy, width, clutter_height_m):
+            status = "in_clutter"
+    return xy, status
+
+
+def _base_depth(meta: dict, tree: dict) -> float:
+    """z-depth (m) of the stem's axis at its base in the camera frame."""
+    R = np.asarray(meta["R_world_from_cam"], float)
+    t = np.asarray(meta["t_world_from_cam"], float)
+    return float((R.T @ (np.asarray(tree["position_world"], float) - t))[2])
 
 
 def simulated_tap(meta: dict, depth: np.ndarray, noise_px: float, seed: int):

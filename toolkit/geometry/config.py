@@ -61,7 +61,7 @@ class StemBaseConfig:
 
     #: a stem-base network base with a probability under this is the scale source
     #: ``stem_base_weak`` (its own sigma) (stem-base.md)
-    p_strong: float = 0.5
+    p_strong: float = 0.9
     #: a tracked edge point counts when its gradient is at least this fraction of that side's
     #: gradient near the rope (stem-base.md)
     min_rel_gradient: float = 0.35
@@ -203,6 +203,10 @@ class DbhConfig:
     min_inlier_ratio: float = 0.7
     #: a stem narrower than this many pixels is flagged ``few_pixels_across_stem``
     few_pixels_px: float = 12.0
+    #: with network perception the tree network's circle only checks the tangent estimate
+    #: whatever the scale source; False averages it in where no precise source leads
+    #: (``ScaleConfig.precise_sources``; scale-combination.md)
+    circle_check_only: bool = True
 
 
 @dataclass(frozen=True)

@@ -3,9 +3,10 @@
 Imported by :mod:`.measure`; imports :mod:`.fits` and :mod:`.sigma`. ``tangent`` is
 ``2 D sin(alpha / 2)`` from the edges' tangent rays; ``cloud`` is a circle fitted (RANSAC and a
 geometric refinement) to the front and back surface points of the stem slice at the rope (the
-silhouette depth maps). They are combined by inverse-variance weighting, with a 1-sigma that
-includes the single-view ovality term; with a precise scale and network perception the circle
-only checks the tangent estimate (decision record ``docs/decisions/scale-combination.md``).
+silhouette depth maps). With network perception the circle only checks the tangent estimate
+(``DbhConfig.circle_check_only``); with ground-truth perception the two are combined by
+inverse-variance weighting, with a 1-sigma that includes the single-view ovality term (decision
+record ``docs/decisions/scale-combination.md``).
 """
 from __future__ import annotations
 
@@ -139,8 +140,9 @@ def estimate_dbh(perc: Perception, edges: TrunkEdges, axis: StemAxis, A: np.ndar
         cloud = cloud_estimate(perc, edges, axis, A, edge_rel, tables, res, flags, cfg.dbh)
         if cloud is not None:
             est["cloud"], sig["cloud"] = cloud
-    # with a precise scale, the tree network's circle only checks the tangent estimate
-    circle_as_check = tables.net and leader in cfg.scale.precise_sources
+    # with network perception the tree network's circle only checks the tangent estimate (or,
+    # with ``circle_check_only`` off, where a precise scale leads)
+    circle_as_check = tables.net and (cfg.dbh.circle_check_only or leader in cfg.scale.precise_sources)
     d, rel_sig_est, est_all = combine_estimates(est, sig, circle_as_check=circle_as_check, flags=flags,
                                                 config=cfg.dbh)
     # edges that disagree with the rope band's length are shared by both estimators (the slice

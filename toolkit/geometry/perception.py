@@ -60,6 +60,7 @@ class Perception:
     rope_thickness_px: float | None = None  # the rope's measured thickness (FWHM across the band, pixels)
     rope_thickness_native_px: float | None = None  # the same in the pixels it was measured in (full resolution)
     rope_contrast: float | None = None      # red-ness contrast of the rope's mean profile across the band
+    rope_thickness_edges: bool = False      # the thickness is edge to edge (else a half-maximum width)
     rope_diameter_m: float | None = None    # the rope's true diameter, given by the user (``--rope-mm``)
     use_vanishing: bool = True      # estimate "up" from the vertical vanishing point (no pose)
     sigma_network: dict | None = None  # measured error model of the shipped networks (manifest)

@@ -77,7 +77,8 @@ def candidate_rope_diameter(perc: Perception, axis: StemAxis, tables: SigmaTable
     if not perc.rope_diameter_m:
         return None
     T_read = float(perc.rope_thickness_px or 0.0)
-    T = T_read / cfg.fwhm_ratio       # the tube's thickness (the half-maximum width reads narrow)
+    # the marker's thickness: edge to edge as read, or the half-maximum width (which reads narrow)
+    T = T_read if perc.rope_thickness_edges else T_read / cfg.fwhm_ratio
     # blur widens thin ropes: the gate is on the pixels it was measured in (the full-resolution
     # photo's where it was read there)
     T_native = float(perc.rope_thickness_native_px or T_read)

@@ -2,8 +2,8 @@
 
 Lives here: :func:`rope_ruler` (the thickness and contrast the geometry's ``rope_diameter`` scale
 source needs) and :func:`rope_at_full_resolution`. Imported by :mod:`monodbh.toolkit.pipeline`;
-imports the band detector and the rope profile of this package (a
-:class:`~monodbh.toolkit.frames.WorkFrame` is passed in).
+imports the band detector, the rope profile and the marker's edge reader (:mod:`.marker_edges`)
+of this package (a :class:`~monodbh.toolkit.frames.WorkFrame` is passed in).
 """
 from __future__ import annotations
 
@@ -27,16 +27,20 @@ class RopeRuler:
         where it was read there).
     contrast : red-ness contrast of the rope's mean profile across the band (None unless the rope's
         diameter is known).
-    flags : ``rope_read_at_full_resolution`` where it was read there.
+    edges : the thickness is the marker's silhouette edge to edge
+        (:func:`~.marker_edges.marker_thickness`); else the red-ness profile's half-maximum width
+        (the geometry corrects it by ``RopeRulerConfig.fwhm_ratio``).
+    flags : ``rope_read_at_full_resolution`` where it was read there, ``marker_read_by_edges``.
     """
     thickness_px: float | None = None
     thickness_native_px: float | None = None
     contrast: float | None = None
+    edges: bool = False
     flags: list[str] = field(default_factory=list)
 
 
 def rope_ruler(rgb: np.ndarray, camera, frame, rope, *, is_line: bool, diameter_known: bool,
-               full_resolution: bool = True, timings: dict | None = None) -> RopeRuler:
+               full_resolution: bool = True, edges: bool = True, timings: dict | None = None) -> RopeRuler:
     """Read the rope's thickness (and, with a known diameter, how clearly it stands out).
 
     Parameters
@@ -47,7 +51,9 @@ def rope_ruler(rgb: np.ndarray, camera, frame, rope, *, is_line: bool, diameter_
     is_line : the band detector saw the rope as a line (else it is no ruler).
     diameter_known : the user gave the rope's diameter (``--rope-mm``).
     full_resolution : read it again on the full-resolution photo where that is larger.
-    timings : ``rope_full_res`` (ms) is added here when it runs.
+    edges : read the thickness edge to edge (:func:`~.marker_edges.marker_thickness`) where it
+        fits, else (or off) the red-ness profile's half-maximum width.
+    timings : ``rope_ruler`` (ms) is added here when it runs.
 
     Returns
     -------
@@ -59,19 +65,40 @@ def rope_ruler(rgb: np.ndarray, camera, frame, rope, *, is_line: bool, diameter_
     if not diameter_known:
         return RopeRuler(T, T)
     full = None
+    t = time.perf_counter()
     if full_resolution:
-        t = time.perf_counter()
-        full = rope_at_full_resolution(rgb, camera, frame, rope)
-        if timings is not None:
-            timings["rope_full_res"] = 1000 * (time.perf_counter() - t)
+        full = rope_at_full_resolution(rgb, camera, frame, rope, edges=edges)
     if full is not None:
-        return RopeRuler(full["thickness_px"] * full["scale"], full["thickness_px"], full["contrast"],
-                         ["rope_read_at_full_resolution"])
-    from .profile import rope_profile_fwhm
-    return RopeRuler(T, T, rope_profile_fwhm(frame.image, rope.polyline, rope.thickness_px)[1])
+        out = RopeRuler(full["thickness_px"] * full["scale"], full["thickness_px"], full["contrast"],
+                        full["edges"], ["rope_read_at_full_resolution"])
+    else:
+        from .profile import rope_profile_fwhm
+        contrast = rope_profile_fwhm(frame.image, rope.polyline, rope.thickness_px)[1]
+        m = _edge_width(frame.image, rope.polyline, T) if edges else None
+        out = RopeRuler(T, T, contrast) if m is None else RopeRuler(m, m, contrast, True)
+    if out.edges:
+        out.flags.append("marker_read_by_edges")
+    if timings is not None:
+        timings["rope_ruler"] = 1000 * (time.perf_counter() - t)
+    return out
 
 
-def rope_at_full_resolution(rgb: np.ndarray, camera, frame, rope) -> dict | None:
+#: an edge-to-edge thickness is used when its 1-sigma is under this fraction of it
+EDGE_MAX_REL_SIGMA = 0.1
+
+
+def _edge_width(img: np.ndarray, polyline, thickness_px: float) -> float | None:
+    """The marker's edge-to-edge thickness (:func:`~.marker_edges.marker_thickness`) where it is
+    determined to :data:`EDGE_MAX_REL_SIGMA`, else None."""
+    from .marker_edges import marker_thickness
+
+    m = marker_thickness(img, np.asarray(polyline, np.float64), max(float(thickness_px), 1.0))
+    if m is None or not (m.sigma_px < EDGE_MAX_REL_SIGMA * m.width_px) or not m.width_px > 0.5:
+        return None
+    return float(m.width_px)
+
+
+def rope_at_full_resolution(rgb: np.ndarray, camera, frame, rope, *, edges: bool = True) -> dict | None:
     """The rope's thickness read again on the full-resolution photo (a 12 MP photo is measured
     at the working long side, where a rope is 2.5x thinner than the sensor sees it).
 
@@ -85,11 +112,12 @@ def rope_at_full_resolution(rgb: np.ndarray, camera, frame, rope) -> dict | None
     rgb : (H, W, 3) uint8 photo; camera : its camera.
     frame : :class:`~monodbh.toolkit.frames.WorkFrame` of the photo.
     rope : :class:`~.rope.RopeDetection` in working-image pixels.
+    edges : read the thickness edge to edge where it fits (see :func:`rope_ruler`).
 
     Returns
     -------
-    ``{"thickness_px", "contrast", "scale"}`` with ``scale`` the working / full-resolution pixel
-    ratio; None when the photo is no larger than the working image or the band is not found
+    ``{"thickness_px", "contrast", "scale", "edges"}`` with ``scale`` the working / full-resolution
+    pixel ratio and ``edges`` whether the thickness was read edge to edge; None when the photo is no larger than the working image or the band is not found
     again at the same place.
     """
     from .band import detect_rope
@@ -112,4 +140,6 @@ def rope_at_full_resolution(rgb: np.ndarray, camera, frame, rope) -> dict | None
     if not 0.4 < det.thickness_px / max(T, 1e-6) < 2.5:
         return None
     contrast = rope_profile_fwhm(crop, det.polyline, det.thickness_px)[1]
-    return {"thickness_px": float(det.thickness_px), "contrast": float(contrast), "scale": float(sx)}
+    m = _edge_width(crop, det.polyline, det.thickness_px) if edges else None
+    return {"thickness_px": float(det.thickness_px if m is None else m), "contrast": float(contrast),
+            "scale": float(sx), "edges": m is not None}

@@ -1,0 +1,250 @@
+"""The marker's thickness edge to edge: a blurred-box fit to its mean chromaticity profile across the band.
+
+Lives here: :func:`marker_thickness` (and its result :class:`MarkerThickness`). Imported by
+:mod:`.ruler` (the rope or strap of known width as a ruler); imports numpy, cv2 and scipy.
+
+A round rope is lit on top and dark underneath and may carry a highlight along its length; a flat
+strap is evenly lit. Profiles of the colour perpendicular to the centre line, along the middle of
+the visible length, are averaged, and each colour channel of the mean profile is fitted by a box
+(the marker, its interior a quadratic across it for the shading) blurred by a Gaussian (optics,
+JPEG's half-resolution colour) on a linear background, the two edges and the blur shared by the
+channels. Mixing is linear in the channels, so the box's edges are the marker's silhouette to a
+small fraction of a pixel whatever the blur and the shading, where a half-maximum width of a
+chromaticity moves with both (decision record ``docs/decisions/rope-ruler.md``).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+
+__all__ = ["MarkerThickness", "marker_thickness", "blurred_box"]
+
+_SQRT2 = np.sqrt(2.0)
+
+
+@dataclass
+class MarkerThickness:
+    """The marker's thickness across its band.
+
+    Attributes
+    ----------
+    width_px : edge-to-edge thickness perpendicular to the band (pixels of the image read).
+    sigma_px : its 1-sigma: the spread of the same fit on four stretches along the band over
+        sqrt(4), at least the whole fit's own standard error.
+    blur_px : the fitted Gaussian blur (1-sigma, pixels).
+    contrast : the box's mean chromaticity above the background.
+    n_columns : profiles averaged.
+    """
+    width_px: float
+    sigma_px: float
+    blur_px: float
+    contrast: float
+    n_columns: int
+
+
+def _phi(x):
+    from scipy.special import erf
+    return 0.5 * (1.0 + erf(x / _SQRT2))
+
+
+def _box_moments(t: np.ndarray, t1: float, t2: float, s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``int_{t1}^{t2} u^k G_s(t - u) du`` for k = 0, 1, 2 (closed forms; ``G_s`` the Gaussian
+    of 1-sigma ``s``)."""
+    t = np.asarray(t, np.float64)
+    z1, z2 = (t - t1) / s, (t - t2) / s
+    D = _phi(z1) - _phi(z2)
+    g1, g2 = np.exp(-0.5 * z1 ** 2) / np.sqrt(2 * np.pi), np.exp(-0.5 * z2 ** 2) / np.sqrt(2 * np.pi)
+    M1 = t * D - s * (g2 - g1)
+    M2 = t * t * D - 2 * t * s * (g2 - g1) + s * s * (D - (z1 * g1 - z2 * g2))
+    return D, M1, M2
+
+
+def blurred_box(t: np.ndarray, t1: float, t2: float, s: float, a: float = 1.0, c: float = 0.0,
+                q: float = 0.0) -> np.ndarray:
+    """A box from ``t1`` to ``t2`` of height ``a + c u + q u^2`` inside, convolved with a
+    Gaussian of 1-sigma ``s`` (all in the units of ``t``).
+
+    Parameters
+    ----------
+    t : (N,) positions.
+    t1, t2 : the box's edges (``t1 < t2``); s : blur (> 0); a, c, q : its interior.
+
+    Returns
+    -------
+    (N,) values.
+
+    Examples
+    --------
+    >>> t = np.array([-10.0, 0.0, 2.0, 10.0])
+    >>> np.round(blurred_box(t, -2.0, 2.0, 0.5), 3).tolist()     # half height at an edge
+    [0.0, 1.0, 0.5, 0.0]
+    """
+    D, M1, M2 = _box_moments(t, t1, t2, s)
+    return a * D + c * M1 + q * M2
+
+
+def _profiles(rgb: np.ndarray, polyline: np.ndarray, thickness_px: float, inner: float, step_px: float):
+    """``(off (M,), profiles (N, M, 3))``: the colour sampled across the band every 0.25 px at
+    columns every ``step_px`` along the middle ``inner`` of the centre line; None when the line
+    is too short or no column lies inside the image."""
+    P = np.asarray(polyline, np.float64)
+    if P.ndim != 2 or P.shape[1] != 2 or len(P) < 2:
+        return None
+    seg = np.linalg.norm(np.diff(P, axis=0), axis=1)
+    s = np.r_[0.0, np.cumsum(seg)]
+    L = float(s[-1])
+    if L < 6:
+        return None
+    ss = np.arange(0.5 * (1 - inner) * L, 0.5 * (1 + inner) * L, step_px)
+    cx, cy = np.interp(ss, s, P[:, 0]), np.interp(ss, s, P[:, 1])
+    k = np.clip(np.searchsorted(s, ss) - 1, 0, len(P) - 2)
+    tang = (P[k + 1] - P[k]) / np.maximum(seg[k], 1e-9)[:, None]
+    n = np.stack([-tang[:, 1], tang[:, 0]], 1)
+    T = max(float(thickness_px), 1.0)
+    r = 1.5 * T + 6.0
+    off = np.arange(-r, r + 1e-6, 0.25)
+    H, W = rgb.shape[:2]
+    x0, x1 = int(max(0, np.floor(cx.min() - r - 2))), int(min(W, np.ceil(cx.max() + r + 3)))
+    y0, y1 = int(max(0, np.floor(cy.min() - r - 2))), int(min(H, np.ceil(cy.max() + r + 3)))
+    if x1 - x0 < 3 or y1 - y0 < 3:
+        return None
+    X = (cx[:, None] + off[None] * n[:, :1] - x0).astype(np.float32)
+    Y = (cy[:, None] + off[None] * n[:, 1:] - y0).astype(np.float32)
+    keep = ((X >= 0) & (X <= x1 - x0 - 1) & (Y >= 0) & (Y <= y1 - y0 - 1)).all(1)
+    if keep.sum() < 3:
+        return None
+    prof = cv2.remap(np.ascontiguousarray(rgb[y0:y1, x0:x1]).astype(np.float32), X, Y, cv2.INTER_LINEAR,
+                     borderMode=cv2.BORDER_REPLICATE)
+    return off, prof[keep]
+
+
+def _basis(off: np.ndarray, t1: float, t2: float, s: float) -> np.ndarray:
+    """(M, 4) columns: 1, t (the background), and the blurred box with its interior's constant
+    and linear terms across it."""
+    tc, h = 0.5 * (t1 + t2), max(0.5 * (t2 - t1), 1e-3)
+    D, M1, _ = _box_moments(off, t1, t2, s)
+    return np.stack([np.ones_like(off), off / max(abs(off[-1]), 1.0), D, (M1 - tc * D) / h], 1)
+
+
+def _gradient_edges(off: np.ndarray, prof: np.ndarray, t1: float, t2: float, s: float):
+    """The outermost peaks of the colour gradient ``|d prof / dt|`` near the box's edges ``t1``,
+    ``t2`` (sub-pixel: a parabola through the log of the peak, exact for a blurred step), or
+    None where a side has no clear peak."""
+    dt = float(off[1] - off[0])
+    g = np.sqrt((np.gradient(prof, dt, axis=0) ** 2).sum(1))
+    gmax = float(g.max())
+    if not gmax > 0:
+        return None
+    out = []
+    for te, outward in ((t1, -1), (t2, +1)):
+        win = np.flatnonzero(np.abs(off - te) <= 2 * s + 1.5)
+        if len(win) < 3:
+            return None
+        strong = win[g[win] >= 0.3 * g[win].max()]
+        # local maxima among the strong samples; the outermost one
+        peaks = [i for i in strong if 0 < i < len(g) - 1 and g[i] >= g[i - 1] and g[i] >= g[i + 1]]
+        if not peaks:
+            return None
+        i = min(peaks) if outward < 0 else max(peaks)
+        la, lb, lc = np.log(np.maximum(g[i - 1:i + 2], 1e-9))
+        den = la - 2 * lb + lc
+        out.append(off[i] + (0.5 * (la - lc) / den * dt if den < 0 else 0.0))
+    return (out[0], out[1]) if out[1] - out[0] > 0.3 else None
+
+
+def _fit(off: np.ndarray, prof: np.ndarray, T: float):
+    """Fit a blurred box with a linear interior on a linear background to each colour channel of
+    the mean profile ``prof`` (M, 3), the edges and blur shared (variable projection): ``(t1,
+    t2, s, contrast, stderr of t2 - t1)`` or None."""
+    from scipy.optimize import least_squares
+
+    def resid(p):
+        B = _basis(off, *p)
+        coef, *_ = np.linalg.lstsq(B, prof, rcond=None)
+        return (B @ coef - prof).ravel()
+
+    tail = np.abs(off) > 0.5 * T + 2.5
+    if tail.sum() < 8 or (~tail).sum() < 4:
+        return None
+    # start: where the colour departs most from the background's
+    bg = np.median(prof[tail], axis=0)
+    dev = np.linalg.norm(prof - bg, axis=1)
+    core = np.flatnonzero(dev > 0.5 * dev[~tail].max())
+    if len(core) >= 2 and off[core[-1]] - off[core[0]] >= 0.5:
+        t1_0, t2_0 = float(off[core[0]]), float(off[core[-1]])
+    else:
+        t1_0, t2_0 = -0.5 * T, 0.5 * T
+    lo, hi = [off[0], off[0], 0.15], [off[-1], off[-1], max(3.0, 0.5 * T)]
+    x0 = np.clip([t1_0, t2_0, 0.8], np.add(lo, 1e-6), np.subtract(hi, 1e-6))
+    try:
+        sol = least_squares(resid, x0, bounds=(lo, hi), x_scale=[1.0, 1.0, 0.5], max_nfev=300)
+    except ValueError:
+        return None
+    t1, t2, s = (float(v) for v in sol.x)
+    if not t2 - t1 > 0.3:
+        return None
+    # a marker several blurs wide: its silhouette is the outermost colour-gradient peak on each
+    # side (a rope's shading and highlight make gradients inside it, not outside)
+    if t2 - t1 > 4 * s + 3:
+        e = _gradient_edges(off, prof, t1, t2, s)
+        if e is not None:
+            t1, t2 = e
+    B = _basis(off, t1, t2, s)
+    coef, *_ = np.linalg.lstsq(B, prof, rcond=None)
+    contrast = float(np.linalg.norm(coef[2]))
+    J = sol.jac
+    dof = max(1, sol.fun.size - 3 - coef.size)
+    s2 = float(np.sum(sol.fun ** 2)) / dof
+    cov = np.linalg.pinv(J.T @ J) * s2
+    se = float(np.sqrt(max(cov[0, 0] + cov[1, 1] - 2 * cov[0, 1], 0.0)))
+    return t1, t2, s, contrast, se
+
+
+def marker_thickness(rgb: np.ndarray, polyline: np.ndarray, thickness_px: float, *, inner: float = 0.7,
+                     step_px: float = 0.5, pieces: int = 4) -> MarkerThickness | None:
+    """The marker's (rope's or strap's) thickness edge to edge, to a fraction of a pixel.
+
+    Parameters
+    ----------
+    rgb : (H, W, 3) uint8 image (undistorted) that holds the band.
+    polyline : (N, 2) the band's centre line (x, y) in ``rgb``'s pixels, N >= 2.
+    thickness_px : the band's rough thickness (sets the profiles' length).
+    inner : the middle fraction of the centre line read (the ends fade round the stem).
+    step_px : spacing of the profiles along the line.
+    pieces : stretches along the line fitted apart for the uncertainty.
+
+    Returns
+    -------
+    :class:`MarkerThickness`, or None where the band is too short or no box fits.
+
+    Examples
+    --------
+    >>> m = marker_thickness(rgb, det.polyline, det.thickness_px)     # doctest: +SKIP
+    >>> m.width_px, m.sigma_px                                        # doctest: +SKIP
+    (12.43, 0.05)
+    """
+    if rgb.ndim != 3 or rgb.shape[2] != 3 or rgb.dtype != np.uint8:
+        raise ValueError(f"marker_thickness: expected an (H, W, 3) uint8 image, got {rgb.shape} {rgb.dtype}")
+    if not np.isfinite(thickness_px) or thickness_px <= 0:
+        raise ValueError(f"marker_thickness: need a positive rough thickness, got {thickness_px}")
+    got = _profiles(rgb, polyline, thickness_px, inner, step_px)
+    if got is None:
+        return None
+    off, prof = got
+    fit = _fit(off, prof.mean(0), float(thickness_px))
+    if fit is None:
+        return None
+    t1, t2, s, contrast, se = fit
+    width = t2 - t1
+    parts = []
+    for chunk in np.array_split(np.arange(len(prof)), pieces):
+        if len(chunk) >= 3:
+            f = _fit(off, prof[chunk].mean(0), width)
+            if f is not None:
+                parts.append(f[1] - f[0])
+    spread = float(np.std(parts, ddof=1) / np.sqrt(len(parts))) if len(parts) >= 2 else float("inf")
+    return MarkerThickness(width_px=float(width), sigma_px=float(max(se, spread)), blur_px=float(s),
+                           contrast=contrast, n_columns=int(len(prof)))
