@@ -1,0 +1,66 @@
+"""The marker's thickness edge to edge (toolkit/rope/marker_edges.py) on synthetic crops of known
+thickness: flat straps and shaded round ropes, blurred, noisy and JPEG-compressed (tests/marker_crops.py)."""
+import numpy as np
+import pytest
+
+from marker_crops import marker_crop
+from monodbh.toolkit.rope.marker_edges import blurred_box, marker_thickness
+from monodbh.toolkit.rope.profile import rope_profile_fwhm
+
+
+def _crop(width, **kw):
+    H = int(6 * width + 48)
+    return marker_crop(width, size=(200, H), centre_y=H / 2 + 0.37, **kw)
+
+
+def test_blurred_box_is_the_convolution_of_a_box_with_a_linear_top():
+    t = np.linspace(-8, 8, 33)
+    u = np.linspace(-3, 2, 20001)
+    du = u[1] - u[0]
+    s = 0.7
+    num = [np.sum((0.5 + 0.2 * u + 0.1 * u * u) * np.exp(-0.5 * ((x - u) / s) ** 2)) * du / (s * np.sqrt(2 * np.pi))
+           for x in t]
+    assert np.allclose(blurred_box(t, -3, 2, s, 0.5, 0.2, 0.1), num, atol=1e-4)
+
+
+@pytest.mark.parametrize("width", [5.2, 12.4, 31.3])
+@pytest.mark.parametrize("blur", [0.5, 1.0, 1.5])
+def test_a_flat_strap_is_read_to_a_small_fraction_of_a_pixel(width, blur):
+    for seed in range(3):
+        img, line = _crop(width, kind="strap", blur_px=blur, jpeg_quality=90, seed=seed)
+        m = marker_thickness(img, line, 1.15 * width)
+        assert m is not None and abs(m.width_px - width) <= 0.25, (width, blur, seed, m)
+        assert 0 < m.sigma_px < 0.1 * width and m.n_columns > 100      # (the ruler uses it under 10 %)
+
+
+@pytest.mark.parametrize("width", [8.7, 12.4, 20.0, 31.3])
+@pytest.mark.parametrize("blur", [0.5, 1.0])
+def test_a_shaded_rope_is_read_edge_to_edge_whatever_its_shading(width, blur):
+    """Lit top, dark underside, a highlight along it: the half-maximum width of the red-ness
+    reads the rope too thin (up to most of it on a thick rope); the edges do not."""
+    errs, fwhm_errs = [], []
+    for seed in range(3):
+        img, line = _crop(width, kind="rope", blur_px=blur, jpeg_quality=90, seed=seed)
+        m = marker_thickness(img, line, 0.9 * width)
+        assert m is not None
+        errs.append(m.width_px - width)
+        fwhm_errs.append(rope_profile_fwhm(img, line, width)[0] - width)
+    assert max(abs(e) for e in errs) <= 0.07 * width, errs
+    assert np.mean(np.abs(errs)) < np.mean(np.abs(fwhm_errs))
+
+
+def test_a_tilted_marker_and_a_rough_starting_thickness():
+    img, line = _crop(10.0, kind="strap", tilt_deg=12.0, blur_px=0.8)
+    for rough in (7.0, 10.0, 14.0):
+        m = marker_thickness(img, line, rough)
+        assert m is not None and abs(m.width_px - 10.0) <= 0.25
+
+
+def test_bad_input_is_refused_and_a_short_band_gives_nothing():
+    img, line = _crop(8.0, kind="strap")
+    with pytest.raises(ValueError, match="uint8"):
+        marker_thickness(img.astype(np.float32), line, 8.0)
+    with pytest.raises(ValueError, match="positive"):
+        marker_thickness(img, line, 0.0)
+    assert marker_thickness(img, np.array([[100.0, 50.0], [102.0, 50.0]]), 8.0) is None
+    assert marker_thickness(img, line[:1], 8.0) is None
