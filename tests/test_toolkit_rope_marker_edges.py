@@ -64,3 +64,11 @@ def test_bad_input_is_refused_and_a_short_band_gives_nothing():
         marker_thickness(img, line, 0.0)
     assert marker_thickness(img, np.array([[100.0, 50.0], [102.0, 50.0]]), 8.0) is None
     assert marker_thickness(img, line[:1], 8.0) is None
+
+
+def test_a_marker_thinner_than_its_blur_is_not_resolved():
+    img, line = _crop(3.3, kind="strap", blur_px=1.5)
+    m = marker_thickness(img, line, 3.3)
+    assert m is not None and not m.resolved
+    img, line = _crop(12.4, kind="strap", blur_px=1.0)
+    assert marker_thickness(img, line, 12.4).resolved

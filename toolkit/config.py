@@ -47,7 +47,7 @@ class MeasureConfig:
     """
     work_long_side_px: int = 1600
     rope_full_resolution: bool = True
-    marker_edges: bool = False
+    marker_edges: bool = True
     overlap_networks: bool = True
     depth_mirror_average: bool = True
     stem_base_threshold: float = 0.7

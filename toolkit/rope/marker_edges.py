@@ -35,14 +35,18 @@ class MarkerThickness:
     sigma_px : its 1-sigma: the spread of the same fit on four stretches along the band over
         sqrt(4), at least the whole fit's own standard error.
     blur_px : the fitted Gaussian blur (1-sigma, pixels).
-    contrast : the box's mean chromaticity above the background.
+    contrast : the box's colour step against the background (norm of its three channels).
     n_columns : profiles averaged.
+    resolved : the marker is wider than four blurs and three pixels, so that each edge is the
+        colour gradient's own peak; a thinner one's width trades off against the blur in the
+        fit (read less exactly).
     """
     width_px: float
     sigma_px: float
     blur_px: float
     contrast: float
     n_columns: int
+    resolved: bool = False
 
 
 def _phi(x):
@@ -158,7 +162,8 @@ def _gradient_edges(off: np.ndarray, prof: np.ndarray, t1: float, t2: float, s: 
 def _fit(off: np.ndarray, prof: np.ndarray, T: float):
     """Fit a blurred box with a linear interior on a linear background to each colour channel of
     the mean profile ``prof`` (M, 3), the edges and blur shared (variable projection): ``(t1,
-    t2, s, contrast, stderr of t2 - t1)`` or None."""
+    t2, s, contrast, stderr of t2 - t1, resolved)`` or None (``resolved``: see
+    :class:`MarkerThickness`)."""
     from scipy.optimize import least_squares
 
     def resid(p):
@@ -188,10 +193,11 @@ def _fit(off: np.ndarray, prof: np.ndarray, T: float):
         return None
     # a marker several blurs wide: its silhouette is the outermost colour-gradient peak on each
     # side (a rope's shading and highlight make gradients inside it, not outside)
+    resolved = False
     if t2 - t1 > 4 * s + 3:
         e = _gradient_edges(off, prof, t1, t2, s)
         if e is not None:
-            t1, t2 = e
+            (t1, t2), resolved = e, True
     B = _basis(off, t1, t2, s)
     coef, *_ = np.linalg.lstsq(B, prof, rcond=None)
     contrast = float(np.linalg.norm(coef[2]))
@@ -200,7 +206,7 @@ def _fit(off: np.ndarray, prof: np.ndarray, T: float):
     s2 = float(np.sum(sol.fun ** 2)) / dof
     cov = np.linalg.pinv(J.T @ J) * s2
     se = float(np.sqrt(max(cov[0, 0] + cov[1, 1] - 2 * cov[0, 1], 0.0)))
-    return t1, t2, s, contrast, se
+    return t1, t2, s, contrast, se, resolved
 
 
 def marker_thickness(rgb: np.ndarray, polyline: np.ndarray, thickness_px: float, *, inner: float = 0.7,
@@ -237,7 +243,7 @@ def marker_thickness(rgb: np.ndarray, polyline: np.ndarray, thickness_px: float,
     fit = _fit(off, prof.mean(0), float(thickness_px))
     if fit is None:
         return None
-    t1, t2, s, contrast, se = fit
+    t1, t2, s, contrast, se, resolved = fit
     width = t2 - t1
     parts = []
     for chunk in np.array_split(np.arange(len(prof)), pieces):
@@ -247,4 +253,4 @@ def marker_thickness(rgb: np.ndarray, polyline: np.ndarray, thickness_px: float,
                 parts.append(f[1] - f[0])
     spread = float(np.std(parts, ddof=1) / np.sqrt(len(parts))) if len(parts) >= 2 else float("inf")
     return MarkerThickness(width_px=float(width), sigma_px=float(max(se, spread)), blur_px=float(s),
-                           contrast=contrast, n_columns=int(len(prof)))
+                           contrast=contrast, n_columns=int(len(prof)), resolved=bool(resolved))

@@ -89,11 +89,11 @@ EDGE_MAX_REL_SIGMA = 0.1
 
 def _edge_width(img: np.ndarray, polyline, thickness_px: float) -> float | None:
     """The marker's edge-to-edge thickness (:func:`~.marker_edges.marker_thickness`) where it is
-    determined to :data:`EDGE_MAX_REL_SIGMA`, else None."""
+    resolved (wider than its blur) and determined to :data:`EDGE_MAX_REL_SIGMA`, else None."""
     from .marker_edges import marker_thickness
 
     m = marker_thickness(img, np.asarray(polyline, np.float64), max(float(thickness_px), 1.0))
-    if m is None or not (m.sigma_px < EDGE_MAX_REL_SIGMA * m.width_px) or not m.width_px > 0.5:
+    if m is None or not m.resolved or not (m.sigma_px < EDGE_MAX_REL_SIGMA * m.width_px):
         return None
     return float(m.width_px)
 
