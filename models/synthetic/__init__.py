@@ -15,7 +15,8 @@ import numpy as np
 
 from .scene import BREAST_HEIGHT_M, Scene, sample_scene
 
-__all__ = ["generate_sample", "iter_samples", "sample_seed", "scene_meta", "stem_base_pixel", "base_in_view", "BREAST_HEIGHT_M"]
+__all__ = ["generate_sample", "iter_samples", "sample_seed", "scene_meta", "stem_base_pixel", "base_in_view",
+           "stem_axis_point_cam", "BREAST_HEIGHT_M"]
 
 
 def sample_seed(seed: int, index: int) -> int:
@@ -60,16 +61,19 @@ def stem_base_pixel(meta: dict, tree: dict, depth: np.ndarray | None = None, *, 
     return xy, "visible"
 
 
-def _stem_front_cam(meta: dict, tree: dict, height_m: float) -> tuple[np.ndarray, float]:
-    """Camera-frame point (3,) on the stem's axis ``height_m`` above its base (vertical height),
-    and the stem's radius there (the radius at 1.3 m; the flare is left out)."""
-    base = np.asarray(tree["position_world"], float)
-    axis = np.asarray(tree.get("axis_world", (0.0, 0.0, 1.0)), float)
+def stem_axis_point_cam(meta: dict, tree: dict, height_m: float) -> np.ndarray:
+    """Camera-frame point ``(3,)`` of a stem's axis at vertical height ``height_m`` above its base.
+
+    Uses the record's ``R_world_from_cam``, ``t_world_from_cam`` and the tree's
+    ``position_world`` (base) and ``axis_world`` (unit direction; vertical if absent).
+    """
+    base = np.asarray(tree["position_world"], np.float64)
+    axis = np.asarray(tree.get("axis_world", (0.0, 0.0, 1.0)), np.float64)
     axis = axis / np.linalg.norm(axis)
     p = base + (height_m / max(axis[2], 0.2)) * axis
-    R = np.asarray(meta["R_world_from_cam"], float)
-    t = np.asarray(meta["t_world_from_cam"], float)
-    return R.T @ (p - t), float(tree["r_bh_m"])
+    R = np.asarray(meta["R_world_from_cam"], np.float64)
+    t = np.asarray(meta["t_world_from_cam"], np.float64)
+    return R.T @ (p - t)
 
 
 def base_in_view(meta: dict, tree: dict, depth: np.ndarray, base_xy, width_px: float,
@@ -114,8 +118,8 @@ def base_in_view(meta: dict, tree: dict, depth: np.ndarray, base_xy, width_px: f
         x, y = int(round(p[0])), int(round(p[1]))
         return float(depth[y, x]) if (0 <= x < W and 0 <= y < H) else -1.0
 
-    p0, r = _stem_front_cam(meta, tree, 0.0)
-    p1, _ = _stem_front_cam(meta, tree, 0.5)
+    r = float(tree["r_bh_m"])          # (the radius at 1.3 m; the flare is left out)
+    p0, p1 = stem_axis_point_cam(meta, tree, 0.0), stem_axis_point_cam(meta, tree, 0.5)
     if p0[2] <= 0.3 or p1[2] <= 0.3:
         return False
     a = project(p1) - project(p0)
@@ -128,7 +132,7 @@ def base_in_view(meta: dict, tree: dict, depth: np.ndarray, base_xy, width_px: f
         return True
     seen_below = False
     for h in np.arange(0.05, clutter_height_m + 0.05 + 1e-6, 0.05):
-        pc, _ = _stem_front_cam(meta, tree, float(h))
+        pc = stem_axis_point_cam(meta, tree, float(h))
         if pc[2] <= 0.3:
             return False
         c = project(pc)

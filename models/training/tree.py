@@ -42,6 +42,7 @@ from monodbh.models.training.common import (AugmentConfig, DataSource, Generator
                                             batch_indices, make_source, photometric,
                                             register_calibration, register_eval, sample_rng,
                                             select_device, train_loop)
+from monodbh.models.synthetic import stem_axis_point_cam
 from monodbh.models.training.depth import pick_indices, undistort_sample
 
 __all__ = ["TreeTrainConfig", "stem_point_cam", "choose_crop", "tree_example", "tree_metrics",
@@ -106,18 +107,9 @@ class TreeTrainConfig:
 # --------------------------------------------------------------------------- crops
 
 
-def stem_point_cam(meta: dict[str, Any], tree: dict[str, Any], height_m: float) -> np.ndarray:
-    """Camera-frame point ``(3,)`` of the stem axis at vertical height ``height_m`` above the base.
-
-    Uses ``position_world`` (base) and ``axis_world`` (unit direction; vertical if absent).
-    """
-    base = np.asarray(tree["position_world"], np.float64)
-    axis = np.asarray(tree.get("axis_world", (0.0, 0.0, 1.0)), np.float64)
-    axis = axis / np.linalg.norm(axis)
-    p = base + (height_m / max(axis[2], 0.2)) * axis
-    R = np.asarray(meta["R_world_from_cam"], np.float64)
-    t = np.asarray(meta["t_world_from_cam"], np.float64)
-    return R.T @ (p - t)
+#: camera-frame point ``(3,)`` of a stem's axis at a vertical height above its base
+#: (:func:`monodbh.models.synthetic.stem_axis_point_cam`)
+stem_point_cam = stem_axis_point_cam
 
 
 def _radius_m(tree: dict[str, Any], s: float) -> float:

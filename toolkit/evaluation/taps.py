@@ -45,20 +45,14 @@ def true_base_pixel(meta: dict, depth: np.ndarray | None = None, *, tolerance_m:
     tree = next(t for t in meta["trees"] if t["id"] == tid)
     xy, status = stem_base_pixel(meta, tree, depth, tolerance_m=tolerance_m)
     if status == "occluded" and clutter_height_m is not None and depth is not None:
-        from monodbh.models.synthetic import base_in_view
+        from monodbh.models.synthetic import base_in_view, stem_axis_point_cam
 
-        z = _base_depth(meta, tree)
+        z = float(stem_axis_point_cam(meta, tree, 0.0)[2])
         width = 2.0 * float(np.asarray(meta["K"], float)[0, 0]) * float(tree["r_bh_m"]) / max(z, 0.05)
         if base_in_view(meta, tree, depth, xy, width, clutter_height_m):
             status = "in_clutter"
     return xy, status
 
-
-def _base_depth(meta: dict, tree: dict) -> float:
-    """z-depth (m) of the stem's axis at its base in the camera frame."""
-    R = np.asarray(meta["R_world_from_cam"], float)
-    t = np.asarray(meta["t_world_from_cam"], float)
-    return float((R.T @ (np.asarray(tree["position_world"], float) - t))[2])
 
 
 def simulated_tap(meta: dict, depth: np.ndarray, noise_px: float, seed: int):

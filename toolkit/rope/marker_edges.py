@@ -1,7 +1,8 @@
 """The marker's thickness edge to edge: a blurred-box fit to its mean chromaticity profile across the band.
 
 Lives here: :func:`marker_thickness` (and its result :class:`MarkerThickness`). Imported by
-:mod:`.ruler` (the rope or strap of known width as a ruler); imports numpy, cv2 and scipy.
+:mod:`.ruler` (the rope or strap of known width as a ruler); imports numpy, cv2, scipy and the
+band's sampling lines of :mod:`.profile`.
 
 A round rope is lit on top and dark underneath and may carry a highlight along its length; a flat
 strap is evenly lit. Profiles of the colour perpendicular to the centre line, along the middle of
@@ -18,6 +19,8 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+
+from .profile import band_cross_lines
 
 
 __all__ = ["MarkerThickness", "marker_thickness", "blurred_box"]
@@ -94,29 +97,11 @@ def _profiles(rgb: np.ndarray, polyline: np.ndarray, thickness_px: float, inner:
     """``(off (M,), profiles (N, M, 3))``: the colour sampled across the band every 0.25 px at
     columns every ``step_px`` along the middle ``inner`` of the centre line; None when the line
     is too short or no column lies inside the image."""
-    P = np.asarray(polyline, np.float64)
-    if P.ndim != 2 or P.shape[1] != 2 or len(P) < 2:
+    lines = band_cross_lines(polyline, rgb.shape[:2], inner=inner, step_px=step_px,
+                             half_px=1.5 * max(float(thickness_px), 1.0) + 6.0, min_len_px=6.0)
+    if lines is None:
         return None
-    seg = np.linalg.norm(np.diff(P, axis=0), axis=1)
-    s = np.r_[0.0, np.cumsum(seg)]
-    L = float(s[-1])
-    if L < 6:
-        return None
-    ss = np.arange(0.5 * (1 - inner) * L, 0.5 * (1 + inner) * L, step_px)
-    cx, cy = np.interp(ss, s, P[:, 0]), np.interp(ss, s, P[:, 1])
-    k = np.clip(np.searchsorted(s, ss) - 1, 0, len(P) - 2)
-    tang = (P[k + 1] - P[k]) / np.maximum(seg[k], 1e-9)[:, None]
-    n = np.stack([-tang[:, 1], tang[:, 0]], 1)
-    T = max(float(thickness_px), 1.0)
-    r = 1.5 * T + 6.0
-    off = np.arange(-r, r + 1e-6, 0.25)
-    H, W = rgb.shape[:2]
-    x0, x1 = int(max(0, np.floor(cx.min() - r - 2))), int(min(W, np.ceil(cx.max() + r + 3)))
-    y0, y1 = int(max(0, np.floor(cy.min() - r - 2))), int(min(H, np.ceil(cy.max() + r + 3)))
-    if x1 - x0 < 3 or y1 - y0 < 3:
-        return None
-    X = (cx[:, None] + off[None] * n[:, :1] - x0).astype(np.float32)
-    Y = (cy[:, None] + off[None] * n[:, 1:] - y0).astype(np.float32)
+    off, X, Y, (x0, y0, x1, y1) = lines
     keep = ((X >= 0) & (X <= x1 - x0 - 1) & (Y >= 0) & (Y <= y1 - y0 - 1)).all(1)
     if keep.sum() < 3:
         return None

@@ -12,7 +12,7 @@ import numpy as np
 
 from .redness import redness_map
 
-__all__ = ["profile_thickness", "rope_profile_fwhm"]
+__all__ = ["profile_thickness", "rope_profile_fwhm", "band_cross_lines"]
 
 
 def profile_thickness(F: np.ndarray, cols: np.ndarray, coef, x0: int, y0: int, T: float) -> float:
@@ -101,30 +101,13 @@ def rope_profile_fwhm(rgb: np.ndarray, polyline: np.ndarray, thickness_px: float
     --------
     >>> fwhm, contrast = rope_profile_fwhm(rgb, det.polyline, det.thickness_px)   # doctest: +SKIP
     """
-    P = np.asarray(polyline, np.float64)
-    if len(P) < 2:
-        return float("nan"), 0.0
-    seg = np.linalg.norm(np.diff(P, axis=0), axis=1)
-    s = np.r_[0.0, np.cumsum(seg)]
-    L = float(s[-1])
-    if L < 4:
-        return float("nan"), 0.0
-    ss = np.arange(0.5 * (1 - inner) * L, 0.5 * (1 + inner) * L, 1.0)
-    cx, cy = np.interp(ss, s, P[:, 0]), np.interp(ss, s, P[:, 1])
-    k = np.clip(np.searchsorted(s, ss) - 1, 0, len(P) - 2)
-    t = (P[k + 1] - P[k]) / np.maximum(seg[k], 1e-9)[:, None]
-    n = np.stack([-t[:, 1], t[:, 0]], 1)
     T = max(float(thickness_px), 1.0)
-    r = 3.0 * T + 4.0
-    off = np.arange(-r, r + 1e-6, 0.25)
-    H, W = rgb.shape[:2]
-    x0, x1 = int(max(0, np.floor(cx.min() - r - 2))), int(min(W, np.ceil(cx.max() + r + 3)))
-    y0, y1 = int(max(0, np.floor(cy.min() - r - 2))), int(min(H, np.ceil(cy.max() + r + 3)))
-    if x1 - x0 < 3 or y1 - y0 < 3:
+    lines = band_cross_lines(polyline, rgb.shape[:2], inner=inner, step_px=1.0, half_px=3.0 * T + 4.0,
+                             min_len_px=4.0)
+    if lines is None:
         return float("nan"), 0.0
+    off, X, Y, (x0, y0, x1, y1) = lines
     F = redness_map(np.ascontiguousarray(rgb[y0:y1, x0:x1]))
-    X = (cx[:, None] + off[None] * n[:, :1] - x0).astype(np.float32)
-    Y = (cy[:, None] + off[None] * n[:, 1:] - y0).astype(np.float32)
     prof = cv2.remap(F, X, Y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).mean(0)
     return _mean_profile_fwhm(prof, off, T)
 
@@ -153,3 +136,46 @@ def _mean_profile_fwhm(prof: np.ndarray, off: np.ndarray, T: float) -> tuple[flo
         return off[i_in] + (v_in - half) / max(v_in - v_out, 1e-9) * (off[i_out] - off[i_in])
 
     return float(cross(b, b + 1) - cross(a, a - 1)), pk - bg
+
+
+def band_cross_lines(polyline: np.ndarray, shape: tuple[int, int], *, inner: float, step_px: float,
+                     half_px: float, min_len_px: float):
+    """Sampling lines across a band: perpendicular to its centre line, every ``step_px`` along
+    the middle ``inner`` fraction of it, from ``-half_px`` to ``half_px`` every 0.25 px.
+
+    Parameters
+    ----------
+    polyline : (N, 2) the band's centre line (x, y) pixels.
+    shape : ``(H, W)`` of the image to be sampled.
+    inner, step_px, half_px : as above; min_len_px : shorter centre lines give None.
+
+    Returns
+    -------
+    ``(off (M,), X (K, M), Y (K, M), (x0, y0, x1, y1))``: the offsets across the band and the
+    float32 sample coordinates for :func:`cv2.remap` in the window ``[y0:y1, x0:x1]`` of the
+    image (which holds every line, clipped to the image); None when the line is too short or the
+    window is empty.
+    """
+    P = np.asarray(polyline, np.float64)
+    if P.ndim != 2 or P.shape[1] != 2 or len(P) < 2:
+        return None
+    seg = np.linalg.norm(np.diff(P, axis=0), axis=1)
+    s = np.r_[0.0, np.cumsum(seg)]
+    L = float(s[-1])
+    if L < min_len_px:
+        return None
+    ss = np.arange(0.5 * (1 - inner) * L, 0.5 * (1 + inner) * L, step_px)
+    cx, cy = np.interp(ss, s, P[:, 0]), np.interp(ss, s, P[:, 1])
+    k = np.clip(np.searchsorted(s, ss) - 1, 0, len(P) - 2)
+    t = (P[k + 1] - P[k]) / np.maximum(seg[k], 1e-9)[:, None]
+    n = np.stack([-t[:, 1], t[:, 0]], 1)
+    r = float(half_px)
+    off = np.arange(-r, r + 1e-6, 0.25)
+    H, W = shape
+    x0, x1 = int(max(0, np.floor(cx.min() - r - 2))), int(min(W, np.ceil(cx.max() + r + 3)))
+    y0, y1 = int(max(0, np.floor(cy.min() - r - 2))), int(min(H, np.ceil(cy.max() + r + 3)))
+    if x1 - x0 < 3 or y1 - y0 < 3:
+        return None
+    X = (cx[:, None] + off[None] * n[:, :1] - x0).astype(np.float32)
+    Y = (cy[:, None] + off[None] * n[:, 1:] - y0).astype(np.float32)
+    return off, X, Y, (x0, y0, x1, y1)
