@@ -54,6 +54,11 @@ def depth(
 def eval_depth(
     folder: Path = typer.Argument(..., exists=True, file_okay=False, help="A dbh synth folder."),
     limit: Optional[int] = typer.Option(None, "--limit", "-n"),
+    max_depth_m: float = typer.Option(80.0, "--max-depth-m", min=0.1, help="Score the pixels whose true "
+                                      "depth is at most this (metres)."),
+    heldout: Optional[Path] = typer.Option(None, "--heldout", exists=True, file_okay=False,
+                                           help="Also score this folder (the same scenes in the held-out "
+                                           "look, dbh synth --look heldout) and print it beside."),
     models_dir: Optional[Path] = typer.Option(None, "--models-dir", hidden=True),
 ) -> None:
     """Score the depth network on a dbh synth folder: AbsRel, SqRel, RMSE, RMSE-log, log10,
@@ -64,9 +69,11 @@ def eval_depth(
     from monodbh.toolkit.evaluation.depth_eval import evaluate_depth, print_depth_scores
     from monodbh.toolkit.pipeline import Session
     sess = Session(models_dir)
-    ms, times = evaluate_depth(folder, sess, limit)
-    if not times:
-        typer.echo(f"error: {folder}: no samples", err=True)
-        raise typer.Exit(1)
-    print_depth_scores(ms, f"depth network on {folder} ({len(ms)} photos)", Console())
-    typer.echo(f"depth network median latency {np.median(times):.0f} ms", err=True)
+    console = Console()
+    for f in [folder] + ([heldout] if heldout is not None else []):
+        ms, times = evaluate_depth(f, sess, limit, max_depth_m=max_depth_m)
+        if not times:
+            typer.echo(f"error: {f}: no samples", err=True)
+            raise typer.Exit(1)
+        print_depth_scores(ms, f"depth network on {f} ({len(ms)} photos, pixels within {max_depth_m:g} m)", console)
+        typer.echo(f"{f}: depth network median latency {np.median(times):.0f} ms", err=True)

@@ -43,6 +43,10 @@ def evaluate(
                                               show_default=False),
     measure_fn: Optional[str] = measure_fn_option(),
     session_factory: Optional[str] = session_factory_option(),
+    heldout: Optional[Path] = typer.Option(None, "--heldout", help="Also evaluate this folder (the same "
+                                           "scenes in the held-out look: dbh synth --look heldout, same "
+                                           "seed) and print both side by side; the JSON report gets it "
+                                           "under \"heldout\".", show_default=False),
 ) -> None:
     """Measure every sample of a synthetic folder and compare with the roped tree's true DBH.
 
@@ -54,13 +58,43 @@ def evaluate(
 
     from rich.console import Console
 
+    from monodbh.toolkit.evaluation import synth_eval as se
+    from monodbh.toolkit.outputs.atomic import atomic_write_text
+
+    for f in (folder, heldout):
+        if f is not None and not f.is_dir():
+            raise fail(f"{f}: no such folder", 2)
+    opts = dict(limit=limit, gt_perception=gt_perception, tap_base=tap_base, tap_rope=tap_rope,
+                tap_noise_px=tap_noise_px, rope_known=rope_known)
+    backend = _eval_backend(measure_fn, session_factory, models_dir, gt_perception)
+    err_console = Console(stderr=True)
+    report, interrupted = _eval_folder(folder, backend, workers, out_dir, err_console, **opts)
+    if heldout is not None and not interrupted:
+        ho_out = None if out_dir is None else out_dir / "heldout"
+        report["heldout"], interrupted = _eval_folder(heldout, backend, workers, ho_out, err_console, **opts)
+        se.print_side_by_side({f"{folder.name} ({report['look']})": report["metrics"],
+                               f"{heldout.name} ({report['heldout']['look']})": report["heldout"]["metrics"]},
+                              Console())
+    if json_out:
+        atomic_write_text(json_out, json.dumps(report, indent=1, ensure_ascii=False) + "\n")
+        err_console.print(f"report: {json_out}", highlight=False)
+    if interrupted:
+        err_console.print("interrupted", style="yellow")
+        raise typer.Exit(130)
+    sys.stdout.flush()
+
+
+def _eval_folder(folder: Path, backend, workers: int, out_dir: Optional[Path], err_console, *,
+                 limit: Optional[int], gt_perception: bool, tap_base: bool, tap_rope: bool,
+                 tap_noise_px: float, rope_known: bool) -> tuple[dict, bool]:
+    """Measure one folder's samples and print its tables: ``(report, interrupted)``, the report as
+    :func:`~monodbh.toolkit.evaluation.synth_eval.eval_report` writes it, plus the folder's ``look``."""
+    from rich.console import Console
+
     from monodbh.calib import MonodbhError
     from monodbh.toolkit.evaluation import synth_eval as se
     from monodbh.toolkit.evaluation.synth_samples import list_synth_samples
-    from monodbh.toolkit.outputs.atomic import atomic_write_text
 
-    if not folder.is_dir():
-        raise fail(f"{folder}: no such folder", 2)
     need_npz = gt_perception or tap_base or tap_rope
     idx = list_synth_samples(folder, need_npz=need_npz)
     if limit:
@@ -73,27 +107,24 @@ def evaluate(
         raise fail(str(exc))
     jobs = se.eval_jobs(samples, tap_base=tap_base, tap_rope=tap_rope, tap_noise_px=tap_noise_px,
                         rope_known=rope_known, out_dir=out_dir)
-    backend = _eval_backend(measure_fn, session_factory, models_dir, gt_perception)
-    err_console = Console(stderr=True)
     try:
         records, interrupted = _measure_all(jobs, samples, backend, workers, err_console)
     except MonodbhError as exc:
         raise fail(str(exc))
     if not records:
-        raise fail("interrupted before any sample was measured", 130)
+        raise fail(f"{folder}: interrupted before any sample was measured", 130)
     m = se.eval_metrics(records)
     stages = se.stage_stats([r["timings_ms"] for r in records])
-    se.print_eval(m, stages, Console())
-    if json_out:
-        report = se.eval_report(folder, records, jobs, m, stages, gt_perception=gt_perception,
-                                tap_base=tap_base, tap_rope=tap_rope, tap_noise_px=tap_noise_px,
-                                rope_known=rope_known, interrupted=interrupted)
-        atomic_write_text(json_out, json.dumps(report, indent=1, ensure_ascii=False) + "\n")
-        err_console.print(f"report: {json_out}", highlight=False)
+    console = Console()
+    console.print(f"[bold]{folder}[/bold] ({samples[0].meta.get('look', 'default')} look)", highlight=False)
+    se.print_eval(m, stages, console)
+    report = se.eval_report(folder, records, jobs, m, stages, gt_perception=gt_perception,
+                            tap_base=tap_base, tap_rope=tap_rope, tap_noise_px=tap_noise_px,
+                            rope_known=rope_known, interrupted=interrupted)
+    report["look"] = samples[0].meta.get("look", "default")
     if interrupted:
-        err_console.print(f"interrupted after {len(records)} of {len(jobs)} samples", style="yellow")
-        raise typer.Exit(130)
-    sys.stdout.flush()
+        err_console.print(f"{folder}: interrupted after {len(records)} of {len(jobs)} samples", style="yellow")
+    return report, interrupted
 
 
 def _eval_backend(measure_fn: Optional[str], session_factory: Optional[str], models_dir: Optional[Path],

@@ -32,6 +32,11 @@ def synth(
     contact: bool = typer.Option(False, "--contact-sheet", help="Also write OUT/contact_sheet.png (16 samples)."),
     marker: str = typer.Option("rope", "--marker", help="The 1.3 m marker: rope (5-15 mm, the default), strap "
                                "(a flat red strap 20-50 mm wide) or mixed (either)."),
+    look: str = typer.Option("default", "--look", help="default; randomized: the same scenes with their colours, "
+                             "texture contrast, light and camera response randomised (for training); or heldout: "
+                             "the same scenes with textures cut from the real photos, another light and another "
+                             "camera (for evaluation only: no training command accepts it; textures from "
+                             "$MONODBH_REAL_TREES or $MONODBH_SHARED_DATA/real_trees)."),
 ) -> None:
     """Render procedural forest scenes with exact ground truth (depth, panoptic labels, rope, z1/z2, DBH)."""
     try:
@@ -44,11 +49,22 @@ def synth(
     W, H = parse_size(size)
     if marker not in ("rope", "strap", "mixed"):
         raise typer.BadParameter(f"expected rope, strap or mixed, got {marker!r}", param_hint="--marker")
+    if look not in ("default", "randomized", "heldout"):
+        raise typer.BadParameter(f"expected default, randomized or heldout, got {look!r}", param_hint="--look")
+    if look == "heldout":
+        from monodbh.models.synthetic.looks import attribution_text, photo_textures
+        try:
+            tex = photo_textures()
+        except FileNotFoundError as e:
+            typer.echo(f"error: {e}", err=True)
+            raise typer.Exit(1)
+        Path(out).mkdir(parents=True, exist_ok=True)
+        (Path(out) / "ATTRIBUTION.md").write_text(attribution_text(tex))
     with Progress("[progress.description]{task.description}", BarColumn(), MofNCompleteColumn(),
                   TimeRemainingColumn(), transient=True) as prog:
         task = prog.add_task(f"rendering {W}x{H}", total=count)
         res = synthesize(out, count, seed, (W, H), start=start, workers=workers or None,
-                         distortion=not no_distortion, marker=marker, progress=lambda r: prog.advance(task))
+                         distortion=not no_distortion, marker=marker, look=look, progress=lambda r: prog.advance(task))
     typer.echo(f"{res['count']} samples in {res['seconds']:.1f} s ({res['samples_per_s']:.2f} samples/s) -> {out}",
                err=True)
     if contact:

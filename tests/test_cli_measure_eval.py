@@ -84,6 +84,29 @@ def test_eval_metrics_and_report(synth_dir, tmp_path):
     assert "MAE" in r.stdout and "segment" in r.stdout
 
 
+def test_eval_heldout_folder_side_by_side(synth_dir, tmp_path):
+    # the same scenes in another look: a copy whose records say "heldout", one photo dropped
+    held = tmp_path / "held"
+    held.mkdir()
+    for i in (0, 1):
+        for ext in (".jpg", ".npz"):
+            (held / f"{i:06d}{ext}").write_bytes((synth_dir / f"{i:06d}{ext}").read_bytes())
+        meta = json.loads((synth_dir / f"{i:06d}.json").read_text())
+        (held / f"{i:06d}.json").write_text(json.dumps({**meta, "look": "heldout"}))
+    rep = tmp_path / "report.json"
+    r = CliRunner().invoke(app, ["eval", str(synth_dir), "--heldout", str(held), "--json", str(rep),
+                                 "--measure-fn", f"{MOD}:fake_eval_measure"])
+    assert r.exit_code == 0, r.output
+    report = json.loads(rep.read_text())
+    assert report["look"] == "default" and report["metrics"]["samples"] == 3
+    assert report["heldout"]["look"] == "heldout" and report["heldout"]["metrics"]["samples"] == 2
+    assert report["heldout"]["metrics"]["roped"] == 2 and report["heldout"]["metrics"]["no_rope"] == 0
+    assert "side by side" in r.stdout and "held (heldout)" in r.stdout
+    r = CliRunner().invoke(app, ["eval", str(synth_dir), "--heldout", str(tmp_path / "nope"),
+                                 "--measure-fn", f"{MOD}:fake_eval_measure"])
+    assert r.exit_code == 2 and "nope: no such folder" in r.output
+
+
 def test_eval_gt_perception_and_limit(synth_dir, tmp_path):
     rep = tmp_path / "report.json"
     r = CliRunner().invoke(app, ["eval", str(synth_dir), "--gt-perception", "--limit", "2", "--json", str(rep),

@@ -185,7 +185,7 @@ def scene_meta(scene: Scene, out: dict) -> dict:
 
 
 def generate_sample(seed: int, index: int = 0, size: tuple[int, int] = (512, 512), *,
-                    distortion: bool = True, aa: bool = True, marker: str = "rope") -> dict:
+                    distortion: bool = True, aa: bool = True, marker: str = "rope", look: str = "default") -> dict:
     """Render one sample.
 
     Parameters
@@ -196,6 +196,8 @@ def generate_sample(seed: int, index: int = 0, size: tuple[int, int] = (512, 512
     marker : the 1.3 m marker: ``"rope"`` (a round rope, the default), ``"strap"`` (a flat red
         strap 20-50 mm wide) or ``"mixed"`` (either, half and half); see
         :func:`~.scene.sample_scene`.
+    look : ``"default"``, or ``"heldout"``: the same scene with another appearance, for evaluation
+        only (:mod:`.looks`; no training path accepts it).
 
     Returns
     -------
@@ -209,8 +211,9 @@ def generate_sample(seed: int, index: int = 0, size: tuple[int, int] = (512, 512
     s = sample_seed(seed, index)
     rng = np.random.default_rng(s)
     scene = sample_scene(rng, W, H, distortion=distortion, seed=s, marker=marker)
-    out = render_scene(scene, rng)
+    out = render_scene(scene, rng, look=look)
     out["meta"] = scene_meta(scene, out)
+    out["meta"]["look"] = look
     out["meta"]["dataset_seed"] = int(seed)
     out["meta"]["index"] = int(index)
     out["scene"] = scene

@@ -3,12 +3,14 @@
 Pipeline per sample: rays through the distorted pixel grid -> closest hits -> materials,
 procedural textures, sun + sky + bounce lighting with cast shadows and a canopy-openness term
 -> adaptive supersampling of object edges and of the rope band -> aerial haze -> a phone-like
-camera (exposure, white balance, noise, blur, JPEG). Ground truth (depth, labels, rope mask,
+camera (exposure, white balance, noise, blur, JPEG); the held-out look (:mod:`.looks`) swaps
+the textures, light and camera. Ground truth (depth, labels, rope mask,
 per-tree nearest/farthest surface depth z1/z2) comes from the same rays.
 """
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 
 import cv2
 import numpy as np
@@ -16,6 +18,8 @@ from embreex import rtcore, rtcore_scene
 
 from .embree_mesh import add_triangles
 from .geometry import SEM_SKY, SEM_TREE, MeshSet, build_meshes
+from .looks import (HELDOUT, LOOKS, RANDOMIZED, HeldoutShading, PhotoTextures, RandomizedShading, heldout_light,
+                    heldout_post, look_rng, photo_textures, randomized_light, randomized_post)
 from .noise import fbm_texture, ridged, sample_texture
 from .scene import BREAST_HEIGHT_M, SPECIES, Scene, ground_height
 from .vec import cross3, norm_rows
@@ -158,7 +162,7 @@ class _Shader:
         n = len(o)
         col = np.zeros((n, 3))
         hit = h["hit"]
-        col[~hit] = _sky(L, d[~hit], self.tex)
+        col[~hit] = self._sky(L, d[~hit])
         if not hit.any():
             return col
         idx = np.nonzero(hit)[0]
@@ -181,16 +185,7 @@ class _Shader:
             gy = (ground_height(sc.ground, q[:, 0], q[:, 1] + eps) - gz) / eps
             nn = np.stack([-gx, -gy, np.ones_like(gx)], 1)
             nrm[m] = nn / norm_rows(nn, keepdims=True)
-            c1 = sample_texture(self.tex["coarse"], q[:, 0] / 23.0, q[:, 1] / 23.0)
-            c2 = sample_texture(self.tex["mid"], q[:, 0] / 3.1, q[:, 1] / 3.1)
-            c3 = sample_texture(self.tex["fine"], q[:, 0] / 0.7, q[:, 1] / 0.7)
-            litter = np.array([0.22, 0.13, 0.06]) * (0.6 + 0.8 * c3[:, None])
-            moss = np.array([0.08, 0.15, 0.04]) * (0.7 + 0.6 * c3[:, None])
-            soil = np.array([0.09, 0.07, 0.05]) * (0.7 + 0.6 * c2[:, None])
-            w_moss = np.clip((c1 - 0.55) * 5, 0, 1)[:, None]
-            w_soil = np.clip((c2 - 0.7) * 5, 0, 1)[:, None]
-            alb[m] = litter * (1 - w_moss) + moss * w_moss
-            alb[m] = alb[m] * (1 - w_soil) + soil * w_soil
+            alb[m] = self._ground_albedo(q)
 
         # stems: analytic normal, bark textures by species, paint marks
         m = kind == "stem"
@@ -218,10 +213,7 @@ class _Shader:
         m = np.isin(kind, ("leaf", "bush", "grass"))
         if m.any():
             ii = np.nonzero(m)[0]
-            base = self.obj_rgb[obj[ii]]
-            prim = h["prim"][idx[ii]]
-            var = ((prim * 2654435761) % 1000) / 1000.0
-            alb[ii] = base * (0.6 + 0.8 * var[:, None])
+            alb[ii] = self._foliage_albedo(self.obj_rgb[obj[ii]], h["prim"][idx[ii]], p[ii])
             trans[ii] = 0.35
         # rope / tape / person: flat colours with fibre noise
         m = np.isin(kind, ("rope", "tape", "jacket", "skin", "trousers"))
@@ -254,6 +246,29 @@ class _Shader:
         fog = np.exp(-h["t"][idx] / L.fog_m)[:, None]
         col[idx] = rad * fog + L.haze_rgb[None] * (1 - fog)
         return col
+
+    def _sky(self, light, dirs: np.ndarray) -> np.ndarray:
+        """Sky radiance (N, 3) for world directions (N, 3)."""
+        return _sky(light, dirs, self.tex)
+
+    def _ground_albedo(self, q: np.ndarray) -> np.ndarray:
+        """Ground albedo (N, 3) at world points ``q`` (N, 3)."""
+        c1 = sample_texture(self.tex["coarse"], q[:, 0] / 23.0, q[:, 1] / 23.0)
+        c2 = sample_texture(self.tex["mid"], q[:, 0] / 3.1, q[:, 1] / 3.1)
+        c3 = sample_texture(self.tex["fine"], q[:, 0] / 0.7, q[:, 1] / 0.7)
+        litter = np.array([0.22, 0.13, 0.06]) * (0.6 + 0.8 * c3[:, None])
+        moss = np.array([0.08, 0.15, 0.04]) * (0.7 + 0.6 * c3[:, None])
+        soil = np.array([0.09, 0.07, 0.05]) * (0.7 + 0.6 * c2[:, None])
+        w_moss = np.clip((c1 - 0.55) * 5, 0, 1)[:, None]
+        w_soil = np.clip((c2 - 0.7) * 5, 0, 1)[:, None]
+        alb = litter * (1 - w_moss) + moss * w_moss
+        return alb * (1 - w_soil) + soil * w_soil
+
+    def _foliage_albedo(self, base: np.ndarray, prim: np.ndarray, p: np.ndarray) -> np.ndarray:
+        """Albedo (N, 3) of leaf, bush and grass hits: the objects' colours ``base`` (N, 3) varied
+        per triangle (``prim`` (N,)); ``p`` (N, 3) are the world points."""
+        var = ((prim * 2654435761) % 1000) / 1000.0
+        return base * (0.6 + 0.8 * var[:, None])
 
     def _bark(self, t, th, s):
         """Bark albedo (N, 3) and a normal perturbation (N, 2) for stem points."""
@@ -321,9 +336,31 @@ def _camera_post(rng, lin: np.ndarray, light) -> np.ndarray:
     return img
 
 
+class _HeldoutShader(HeldoutShading, _Shader):
+    """The shader with the held-out look's appearance (:mod:`.looks`)."""
+
+
+class _RandomizedShader(RandomizedShading, _Shader):
+    """The default shader with its colours and texture contrast randomised (:mod:`.looks`)."""
+
+
+def _focus_m(scene: Scene) -> float:
+    """Where the held-out look's lens is focused: the roped stem at 1.3 m, else 8 m (metres, z)."""
+    cam = scene.camera
+    if scene.roped_tree:
+        t = scene.trees[scene.roped_tree - 1]
+        return float(max(1.0, (cam.R_wc.T @ (t.axis_point(1.3) - cam.t_wc))[2]))
+    return 8.0
+
+
 def render_scene(scene: Scene, rng: np.random.Generator, *, aa: bool = True, shadows: bool = True,
-                 jpeg_quality: int | None = None) -> dict:
+                 jpeg_quality: int | None = None, look: str = "default",
+                 textures: PhotoTextures | None = None) -> dict:
     """Render ``scene`` and its ground truth.
+
+    ``look``: ``"default"``, ``"randomized"`` or ``"heldout"`` (:mod:`.looks`: the same geometry,
+    labels and ground truth with another appearance; ``textures``: the held-out look's photo
+    patches, default :func:`.looks.photo_textures`).
 
     Returns
     -------
@@ -343,7 +380,19 @@ def render_scene(scene: Scene, rng: np.random.Generator, *, aa: bool = True, sha
     V, F, face_obj = ms.arrays()
     lap("meshes")
     tracer = Tracer(V, F, cam.t_wc)
-    sh = _Shader(scene, ms, tracer, face_obj, rng)
+    if look in (HELDOUT, RANDOMIZED):
+        # its own random stream: the scene's labels and geometry stay those of the default look
+        lrng = look_rng(scene.seed, look)
+        if look == HELDOUT:
+            sh = _HeldoutShader(replace(scene, light=heldout_light(scene.light, lrng)), ms, tracer, face_obj, rng)
+            sh._heldout_init(textures or photo_textures(), lrng)
+        else:
+            sh = _RandomizedShader(replace(scene, light=randomized_light(scene.light, lrng)), ms, tracer, face_obj, rng)
+            sh._randomized_init(lrng)
+    elif look == "default":
+        sh = _Shader(scene, ms, tracer, face_obj, rng)
+    else:
+        raise ValueError(f"unknown look {look!r} (expected one of {', '.join(LOOKS)})")
     lap("bvh")
 
     v, u = np.mgrid[0:H, 0:W]
@@ -496,8 +545,15 @@ def render_scene(scene: Scene, rng: np.random.Generator, *, aa: bool = True, sha
 
     lap("z2")
     lin = col.reshape(H, W, 3)
-    img = _camera_post(rng, lin, scene.light)
-    q = int(jpeg_quality if jpeg_quality is not None else rng.integers(72, 96))
+    if look == HELDOUT:
+        img = heldout_post(lrng, lin, sh.scene.light, depth.reshape(H, W), _focus_m(scene))
+        q = int(jpeg_quality if jpeg_quality is not None else lrng.integers(60, 92))
+    elif look == RANDOMIZED:
+        img = randomized_post(lrng, lin, sh.scene.light)
+        q = int(jpeg_quality if jpeg_quality is not None else lrng.integers(50, 96))
+    else:
+        img = _camera_post(rng, lin, scene.light)
+        q = int(jpeg_quality if jpeg_quality is not None else rng.integers(72, 96))
     ok, buf = cv2.imencode(".jpg", cv2.cvtColor(img, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, q])
     rgb = cv2.cvtColor(cv2.imdecode(buf, cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
     lap("post")
@@ -506,6 +562,6 @@ def render_scene(scene: Scene, rng: np.random.Generator, *, aa: bool = True, sha
         depth=depth.reshape(H, W).astype(np.float32),
         semantic=sem.reshape(H, W), instance=inst.reshape(H, W), rope=rope.reshape(H, W),
         z1=z1.reshape(H, W).astype(np.float32), z2=z2.reshape(H, W).astype(np.float32),
-        stats=dict(triangles=int(len(F)), aa_pixels=int(n_aa), jpeg_quality=q),
+        stats=dict(triangles=int(len(F)), aa_pixels=int(n_aa), jpeg_quality=q, look=look),
         timings_ms=tm,
     )

@@ -493,6 +493,16 @@ class DataSource:
         return [self.get(i) for i in indices]
 
 
+def refuse_heldout(where: Any, metas: Sequence[dict[str, Any]]) -> None:
+    """Raise ``ValueError`` when one of the samples' ``metas`` is of the held-out look
+    (``dbh synth --look heldout``): it is for evaluation only, never for training, validation
+    during training or quantization (``where`` names the data in the message)."""
+    from monodbh.models.synthetic.looks import HELDOUT
+    if any((m or {}).get("look") == HELDOUT for m in metas):
+        raise ValueError(f"{where}: samples of the held-out look (dbh synth --look heldout) are for "
+                         "evaluation only and are never trained, validated or calibrated on")
+
+
 class ListSource(DataSource):
     """In-memory list of sample dicts (tests; not serialisable to config beyond its length)."""
 
@@ -522,7 +532,7 @@ class FolderSource(DataSource):
     """
 
     def __init__(self, folders: str | os.PathLike | Sequence[str | os.PathLike],
-                 cache: int = 0, segmasks: bool = False) -> None:
+                 cache: int = 0, segmasks: bool = False, allow_heldout: bool = False) -> None:
         from monodbh.models.synthetic import io as sio
 
         self.segmasks = segmasks     # also read NNNNNN.segmask.png (training.segmasks) as "segmask"
@@ -534,7 +544,10 @@ class FolderSource(DataSource):
         for f in self.folders:
             if not f.is_dir():
                 raise FileNotFoundError(f"{f}: data folder not found")
-            self.items += [(f, i) for i in sio.list_samples(f)]
+            idx = sio.list_samples(f)
+            if idx and not allow_heldout:
+                refuse_heldout(f, [sio.read_sample(f, i, arrays=False)["meta"] for i in {idx[0], idx[-1]}])
+            self.items += [(f, i) for i in idx]
         if not self.items:
             raise FileNotFoundError(f"{', '.join(map(str, self.folders))}: no samples found")
         self._cache: OrderedDict[int, dict[str, Any]] = OrderedDict()
@@ -588,6 +601,7 @@ class GeneratorSource(DataSource):
         self.seed = int(seed)
         self.size = (int(size[0]), int(size[1]))
         self.opts = dict(opts or {})
+        refuse_heldout(f"generator seed {self.seed}", [self.opts])
         self.pool = pool
         self._cache: OrderedDict[int, dict[str, Any]] = OrderedDict()
         self._cache_size = cache if cache else (pool or 0)
@@ -716,12 +730,13 @@ def source_from_config(cfg: dict[str, Any]) -> DataSource:
 
 
 def make_source(data: Any, *, default_seed: int = 0,
-                size: tuple[int, int] = (320, 240)) -> DataSource:
+                size: tuple[int, int] = (320, 240), allow_heldout: bool = False) -> DataSource:
     """Build a :class:`DataSource` from a flexible value.
 
     Accepted: a ``DataSource``; a list of sample dicts; a folder path or list of folder paths;
     a config dict (:func:`source_from_config`); ``.npz`` example bank path(s) (:class:`BankSource`); the string ``"gen"`` / ``"gen:SEED"`` /
-    ``"gen:SEED:POOL"`` (generator at ``size``).
+    ``"gen:SEED:POOL"`` (generator at ``size``). Folders of the held-out look are refused
+    (:func:`refuse_heldout`) unless ``allow_heldout`` (evaluation).
     """
     if isinstance(data, DataSource):
         return data
@@ -733,12 +748,14 @@ def make_source(data: Any, *, default_seed: int = 0,
         pool = int(parts[2]) if len(parts) > 2 and parts[2] else None
         return GeneratorSource(seed, size, pool=pool)
     if isinstance(data, (list, tuple)) and data and isinstance(data[0], dict):
+        if not allow_heldout:
+            refuse_heldout("samples", [d.get("meta") for d in data])
         return ListSource(data)
     items = [data] if isinstance(data, (str, os.PathLike)) else data
     if isinstance(items, (list, tuple)) and items and all(str(x).endswith(".npz") for x in items):
         return BankSource(list(items))
     if isinstance(data, (str, os.PathLike, list, tuple)):
-        return FolderSource(data)
+        return FolderSource(data, allow_heldout=allow_heldout)
     raise TypeError(f"cannot make a data source from {type(data).__name__}")
 
 

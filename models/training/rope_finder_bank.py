@@ -114,13 +114,18 @@ def mine_photo(rgb: np.ndarray, rope: np.ndarray, finder, rng: np.random.Generat
 
 
 def cut_folder(folder: str | Path, out: str | Path, seed: int = 0, limit: int | None = None,
-               mine: str | None = None) -> dict:
+               mine: str | None = None, allow_heldout: bool = False) -> dict:
     """Cut every photo of a ``dbh synth`` folder into the bank ``out`` (``.npz``); with ``mine``
-    (a finder ONNX file), its hard negatives instead (:func:`mine_photo`)."""
+    (a finder ONNX file), its hard negatives instead (:func:`mine_photo`). A folder of the
+    held-out look is refused unless ``allow_heldout`` (a bank to evaluate on, not to train)."""
     folder = Path(folder)
     photos = sorted(folder.glob("*.jpg"))[:limit]
     if not photos:
         raise FileNotFoundError(f"{folder}: no .jpg samples")
+    if not allow_heldout:
+        from .common import refuse_heldout
+        refuse_heldout(folder, [json.loads(p.with_suffix(".json").read_text()) for p in (photos[0], photos[-1])
+                                if p.with_suffix(".json").exists()])
     finder = None
     if mine:
         from monodbh.models.runtime.rope_finder import RopeFinder

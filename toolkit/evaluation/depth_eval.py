@@ -92,7 +92,8 @@ def write_depth(out_dir: str | Path, photo: str, depth: np.ndarray) -> Path:
     return p
 
 
-def evaluate_depth(folder: str | Path, session, limit: int | None = None) -> tuple[list[dict], list[float]]:
+def evaluate_depth(folder: str | Path, session, limit: int | None = None,
+                   max_depth_m: float = 80.0) -> tuple[list[dict], list[float]]:
     """Score the depth network on the samples of a ``dbh synth`` folder.
 
     Parameters
@@ -103,6 +104,8 @@ def evaluate_depth(folder: str | Path, session, limit: int | None = None) -> tup
         Its segmenter and depth network run.
     limit : int, optional
         Score the first ``limit`` samples only.
+    max_depth_m : float
+        Score the pixels whose true depth is at most this (metres).
 
     Returns
     -------
@@ -118,7 +121,7 @@ def evaluate_depth(folder: str | Path, session, limit: int | None = None) -> tup
     for i in list_samples(folder)[: limit or None]:
         s = read_sample(folder, i)
         d, tm = photo_depth(s["path"], camera_from_meta(s["meta"]), session)
-        ms.append(depth_metrics(d, s["depth"]))
+        ms.append(depth_metrics(d, s["depth"], max_depth=max_depth_m))
         times.append(tm.get("depth", 0.0))
     return [m for m in ms if m], times
 

@@ -27,7 +27,7 @@ from .synth_samples import camera_from_meta, gt_dbh_cm, gt_rope_px, gt_silhouett
 from .taps import sample_base_tap, sample_rope_tap, true_base_pixel
 
 __all__ = ["EvalSample", "SampleRecordError", "read_eval_samples", "eval_jobs", "eval_record", "eval_report",
-           "eval_metrics", "stage_stats", "print_eval", "ROPE_PX_BINS"]
+           "eval_metrics", "stage_stats", "print_eval", "print_side_by_side", "ROPE_PX_BINS"]
 
 
 class SampleRecordError(MonodbhError):
@@ -412,6 +412,21 @@ def _accuracy_rows(m: dict) -> list[tuple[str, str]]:
     if m.get("rope_checked"):
         rows.insert(2, ("measured on another band (wrong tree)", f"{m['wrong_rope']} of {m['rope_checked']}"))
     return rows
+
+
+def print_side_by_side(named: dict, console) -> None:
+    """One accuracy table with a column per folder (``named``: ``{title: metrics}``, each from
+    :func:`eval_metrics`): the benchmark beside the same scenes in the held-out look."""
+    from rich.table import Table
+
+    t = Table(title="DBH accuracy, side by side", show_header=True, header_style="bold")
+    t.add_column("metric")
+    cols = [dict(_accuracy_rows(m)) for m in named.values()]
+    for name in named:
+        t.add_column(name, justify="right")
+    for k in cols[0]:
+        t.add_row(k, *[c.get(k, "-") for c in cols])
+    console.print(t)
 
 
 def print_eval(m: dict, stages: dict, console) -> None:

@@ -1,0 +1,136 @@
+"""Each shipped network's own figures on synthetic folders, side by side: is a look held out?
+
+For every folder given (typically the benchmark ``data/bench`` and the same scenes in the
+held-out look, ``dbh synth data/bench_heldout --look heldout`` with the same seed), the shipped
+int8 models are scored by their training's evaluation hooks
+(:func:`monodbh.models.training.common.evaluate_kind`), on the same samples for every folder:
+
+- segmenter: ``roped_iou`` (the roped tree's mask IoU) and ``roped_detected``;
+- depth: ``absrel`` and ``ms_absrel`` (median-scaled) at the network's input;
+- tree: ``g_acc`` and ``g_within10`` (thickness within 10 %);
+- stem_base: ``recall`` (bases found within 5 % of the strip) and ``precision``;
+- rope_finder: ``recall`` and ``tile_auc`` on a bank cut from the folder
+  (:func:`monodbh.models.training.rope_finder_bank.cut_folder`, to a temporary file).
+
+The last column gives each figure of the last folder over the first's (errors: how many times
+larger; scores: how many times smaller), the ratio issue 26 bounds by 1.25.
+
+Usage::
+
+    python -m monodbh.toolkit.evaluation.network_scores data/bench data/bench_heldout [--n 120] [--json F]
+
+Imported by nothing (a command); imports the training package's evaluation hooks and onnxruntime.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import tempfile
+from pathlib import Path
+from typing import Optional, Sequence
+
+__all__ = ["FIGURES", "score_folder", "ratio", "main"]
+
+#: (network, metric, lower is better) printed for each folder
+FIGURES = (("segmenter", "roped_iou", False), ("segmenter", "roped_detected", False),
+           ("depth", "absrel", True), ("depth", "ms_absrel", True),
+           ("tree", "g_acc", False), ("tree", "g_within10", False),
+           ("stem_base", "recall", False), ("stem_base", "precision", False),
+           ("rope_finder", "recall", False), ("rope_finder", "tile_auc", False))
+
+
+def _look(folder: Path) -> str:
+    """The ``look`` of a folder's first sample (``default`` for folders written before looks)."""
+    js = sorted(folder.glob("*.json"))
+    return json.loads(js[0].read_text()).get("look", "default") if js else "?"
+
+
+def score_folder(folder: str | Path, n: int = 120, seed: int = 0, models_dir: Optional[Path] = None,
+                 kinds: Sequence[str] = ("segmenter", "depth", "tree", "stem_base", "rope_finder")) -> dict:
+    """Each shipped network's evaluation metrics on the samples of ``folder``.
+
+    Parameters
+    ----------
+    folder : a ``dbh synth`` folder (either look).
+    n : samples (strips, crops, tiles) each hook evaluates; the same ones for every folder of the
+        same scenes, since they are picked by ``seed`` and the sample count.
+    models_dir : the ONNX models and their ``manifest.json`` (default: the shipped ones).
+
+    Returns
+    -------
+    dict: ``{kind: {metric: value}}`` and ``look``.
+    """
+    import dataclasses
+
+    from monodbh.models.export.cli_impl import MODELS_DIR
+    from monodbh.models.export.onnx_io import make_session, run_session
+    from monodbh.models.modeling.registry import ModelSpec
+    from monodbh.models.runtime.common import load_manifest
+    from monodbh.models.training.common import BankSource, evaluate_kind, make_source
+
+    folder = Path(folder)
+    mdir = Path(models_dir) if models_dir else MODELS_DIR
+    entries = load_manifest(mdir / "manifest.json")["models"]
+    out: dict = {"look": _look(folder)}
+    src = make_source(folder, allow_heldout=True)
+    for kind in kinds:
+        e = entries[kind]
+        spec = ModelSpec.from_dict(e["spec"])
+        if kind == "tree" and "thickness" not in spec.extra:
+            spec = dataclasses.replace(spec, extra={**spec.extra, "thickness": "z"})
+        sess = make_session(mdir / e["file"], threads=2)
+        if kind == "rope_finder":
+            from monodbh.models.training.rope_finder_bank import cut_folder
+            with tempfile.TemporaryDirectory() as tmp:
+                bank = Path(tmp) / "bank.npz"
+                cut_folder(folder, bank, seed=seed, allow_heldout=True)
+                data = BankSource([str(bank)])
+                out[kind] = evaluate_kind(kind, lambda f: run_session(sess, f), n, seed, spec, data)
+        else:
+            out[kind] = evaluate_kind(kind, lambda f: run_session(sess, f), n, seed, spec, src)
+    return out
+
+
+def ratio(a: float, b: float, lower_is_better: bool) -> float:
+    """How many times worse ``b`` is than ``a`` (> 1: worse; errors b / a, scores a / b).
+
+    Examples
+    --------
+    >>> ratio(0.2, 0.3, True), ratio(0.8, 0.4, False)
+    (1.5, 2.0)
+    """
+    if lower_is_better:
+        return b / a if a else float("inf")
+    return a / b if b else float("inf")
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("folders", nargs="+", type=Path)
+    ap.add_argument("--n", type=int, default=120, help="samples each network is scored on")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--models-dir", type=Path, default=None)
+    ap.add_argument("--json", type=Path, default=None)
+    a = ap.parse_args(argv)
+    for f in a.folders:
+        if not f.is_dir():
+            ap.error(f"{f}: not a folder")
+    res = {str(f): score_folder(f, a.n, a.seed, a.models_dir) for f in a.folders}
+    names = list(res)
+    head = f"{'network':<12}{'metric':<16}" + "".join(f"{Path(k).name + ' (' + res[k]['look'] + ')':>28}" for k in names)
+    if len(names) > 1:
+        head += f"{'worse by':>10}"
+    print(head)
+    for kind, m, low in FIGURES:
+        vals = [res[k].get(kind, {}).get(m) for k in names]
+        row = f"{kind:<12}{m:<16}" + "".join(f"{v:>28.3f}" if v is not None else f"{'-':>28}" for v in vals)
+        if len(names) > 1 and None not in (vals[0], vals[-1]):
+            row += f"{ratio(vals[0], vals[-1], low):>10.2f}"
+        print(row)
+    if a.json:
+        a.json.write_text(json.dumps(res, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
