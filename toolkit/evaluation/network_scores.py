@@ -18,6 +18,7 @@ larger; scores: how many times smaller), the ratio issue 26 bounds by 1.25.
 Usage::
 
     python -m monodbh.toolkit.evaluation.network_scores data/bench data/bench_heldout [--n 120] [--json F]
+        [--kinds stem_base,depth] [--models-dir DIR]
 
 Imported by nothing (a command); imports the training package's evaluation hooks and onnxruntime.
 """
@@ -111,17 +112,25 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--models-dir", type=Path, default=None)
     ap.add_argument("--json", type=Path, default=None)
+    ap.add_argument("--kinds", default="segmenter,depth,tree,stem_base,rope_finder",
+                    help="comma-separated networks to score")
     a = ap.parse_args(argv)
+    kinds = [k for k in a.kinds.split(",") if k]
+    bad = sorted(set(kinds) - {k for k, _, _ in FIGURES})
+    if bad:
+        ap.error(f"unknown network(s): {', '.join(bad)}")
     for f in a.folders:
         if not f.is_dir():
             ap.error(f"{f}: not a folder")
-    res = {str(f): score_folder(f, a.n, a.seed, a.models_dir) for f in a.folders}
+    res = {str(f): score_folder(f, a.n, a.seed, a.models_dir, kinds) for f in a.folders}
     names = list(res)
     head = f"{'network':<12}{'metric':<16}" + "".join(f"{Path(k).name + ' (' + res[k]['look'] + ')':>28}" for k in names)
     if len(names) > 1:
         head += f"{'worse by':>10}"
     print(head)
     for kind, m, low in FIGURES:
+        if kind not in kinds:
+            continue
         vals = [res[k].get(kind, {}).get(m) for k in names]
         row = f"{kind:<12}{m:<16}" + "".join(f"{v:>28.3f}" if v is not None else f"{'-':>28}" for v in vals)
         if len(names) > 1 and None not in (vals[0], vals[-1]):
