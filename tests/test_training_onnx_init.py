@@ -119,3 +119,23 @@ def test_train_warm_start_from_onnx_and_resume(tmp_path):
     assert r["step"] == 3
     ck = torch.load(run / "checkpoint.pt", weights_only=False)["model"]
     assert all(torch.allclose(v, torch.full_like(v, 1 - 1e-5)) for k, v in ck.items() if k.endswith("running_var"))
+
+
+def test_int8_file_accepted_within_its_own_quantisation_error(tmp_path):
+    # an int8 file is reproduced no better than a re-quantised copy of the recovered weights:
+    # the check then compares with that floor instead of the fixed limit
+    from monodbh.models.export.quantize import DEFAULT_RECIPES, quantize_int8
+
+    src = _trained_like("tree", seed=3)
+    fp32, int8 = tmp_path / "t.onnx", tmp_path / "t_int8.onnx"
+    export_onnx(src, src.spec, fp32, check=False)
+    feeds = [random_feeds(src.spec, seed=s) for s in range(6)]
+    quantize_int8(fp32, int8, feeds, src.spec, DEFAULT_RECIPES[0])
+    tight = 1e-4                                    # far below the int8 file's own error
+    info = load_onnx_into(build("tree", "tiny"), int8, max_rel_l2=tight, feeds=feeds[:3], fit_steps=0,
+                          calib_feeds=feeds)
+    assert info["rel_l2"] > tight and info["rel_l2"] <= 1.5 * info["quant_floor"]
+    # a floor factor too small refuses it, and the message names the floor
+    with pytest.raises(ValueError, match="re-quantised copy"):
+        load_onnx_into(build("tree", "tiny"), int8, max_rel_l2=tight, feeds=feeds[:3], fit_steps=0,
+                       calib_feeds=feeds, floor_factor=0.01)

@@ -212,7 +212,8 @@ def load_packed_weights(path: str | os.PathLike, kind: str, size: str) -> dict[s
     return w
 
 
-def _init_feeds(config: dict[str, Any], spec: Any, n: int = 4) -> list[dict[str, np.ndarray]] | None:
+def _init_feeds(config: dict[str, Any], spec: Any, n: int = 4,
+                seed_offset: int = 7) -> list[dict[str, np.ndarray]] | None:
     """A few inputs from the run's own training data for the warm-start check.
 
     Statically quantised files saturate on random inputs (the shipped tree U-Net differs from
@@ -222,7 +223,7 @@ def _init_feeds(config: dict[str, Any], spec: Any, n: int = 4) -> list[dict[str,
     """
     try:
         src = source_from_config(config.get("data") or {})
-        return calibration_inputs(config["kind"], n, int(config.get("seed", 0)) + 7, spec, src)
+        return calibration_inputs(config["kind"], n, int(config.get("seed", 0)) + seed_offset, spec, src)
     except Exception:  # noqa: BLE001 - any failure: the check falls back to random inputs
         return None
 
@@ -356,7 +357,8 @@ def train_loop(run_dir: str | os.PathLike, *, config: dict[str, Any], model: tor
             # BatchNorms come back as identity + bias and stay frozen (eval) from now on
             from monodbh.models.training.onnx_init import freeze_bn, load_onnx_into
 
-            info = load_onnx_into(model, init_weights, feeds=_init_feeds(config, model.spec))
+            info = load_onnx_into(model, init_weights, feeds=_init_feeds(config, model.spec),
+                                  calib_feeds=_init_feeds(config, model.spec, n=32, seed_offset=101))
             n_bn = freeze_bn(model) if info["folded_bn"] else 0
             config = dict(config, init_weights={
                 "file": str(init_weights), "from_step": _onnx_steps(init_weights),

@@ -28,8 +28,10 @@ How the weights are recovered (:func:`state_dict_from_onnx`)
 Measured on the shipped int8 files, with a few training inputs as feeds: the recovered fp32
 models reproduce their outputs to 0.19 % (CDEN), 4.1 % (segmenter, after the fit) and 9.4 %
 (U-Net, mostly the file's own int8 error; 1.8 % from the true fp32 export) relative L2
-(:func:`load_onnx_into` refuses more than 10 %). Random inputs overstate this for static
-int8 files, which saturate on them (24 % for the U-Net).
+(:func:`load_onnx_into` refuses more than 10 %, unless the file's own quantisation error is
+that large: the shipped segmenter of 2026-12-01 is 14-17 % from its recovered weights, about as
+far as their own re-quantised copy). Random inputs overstate this for static int8 files, which
+saturate on them (24 % for the U-Net).
 """
 from __future__ import annotations
 
@@ -42,7 +44,8 @@ import numpy as np
 import torch
 from torch import nn
 
-__all__ = ["read_onnx_weights", "state_dict_from_onnx", "load_onnx_into", "fidelity", "fit_missing", "freeze_bn"]
+__all__ = ["read_onnx_weights", "state_dict_from_onnx", "load_onnx_into", "fidelity", "fit_missing", "freeze_bn",
+           "quantization_floor"]
 
 
 def read_onnx_weights(path: str | os.PathLike) -> dict[str, np.ndarray]:
@@ -430,16 +433,66 @@ def _stay_eval(self, mode: bool = True):
     return self
 
 
+def _is_quantized(onnx_path: str | os.PathLike) -> bool:
+    """Whether the file holds int8 QDQ or dynamically quantised nodes."""
+    import onnx
+    ops = {n.op_type for n in onnx.load(str(onnx_path), load_external_data=False).graph.node}
+    return bool(ops & {"QuantizeLinear", "DequantizeLinear", "DynamicQuantizeLinear", "MatMulInteger",
+                       "ConvInteger"})
+
+
+def _file_recipe(onnx_path: str | os.PathLike):
+    """The quantisation recipe the file was made with (its manifest entry's ``quant_recipe``
+    where a ``manifest.json`` beside it lists it, else the export's first default recipe)."""
+    import json
+
+    from monodbh.models.export.quantize import DEFAULT_RECIPES
+    path = Path(onnx_path)
+    name = None
+    try:
+        entries = json.loads((path.parent / "manifest.json").read_text()).get("models", {})
+        name = next((e.get("quant_recipe") for e in entries.values() if e.get("file") == path.name), None)
+    except (OSError, ValueError, AttributeError):
+        pass
+    return next((r for r in DEFAULT_RECIPES if r.name == name), DEFAULT_RECIPES[0])
+
+
+def quantization_floor(model: nn.Module, onnx_path: str | os.PathLike, feeds: list[dict[str, np.ndarray]],
+                       calib_feeds: list[dict[str, np.ndarray]] | None = None) -> float:
+    """How far an int8 file of ``model`` itself is from ``model`` on ``feeds`` (:func:`fidelity`):
+    the model exported to fp32 and quantised again with ``onnx_path``'s recipe, calibrated on
+    ``calib_feeds`` (default ``feeds``; calibrating on the compared inputs themselves
+    understates the floor, so other inputs, as many as the export uses, are better).
+
+    An int8 file cannot be reproduced by any float model closer than its own quantisation error;
+    the recovered weights of such a file are as right as they can be when they reproduce it about
+    as well as their own re-quantised copy does."""
+    from monodbh.models.export.onnx_io import export_onnx
+    from monodbh.models.export.quantize import quantize_int8
+    with tempfile.TemporaryDirectory() as tmp:
+        fp32, int8 = Path(tmp) / "fp32.onnx", Path(tmp) / "int8.onnx"
+        export_onnx(model, model.spec, fp32, check=False)
+        quantize_int8(fp32, int8, calib_feeds or feeds, model.spec, _file_recipe(onnx_path))
+        return fidelity(model, int8, feeds)
+
+
 def load_onnx_into(model: nn.Module, onnx_path: str | os.PathLike, max_rel_l2: float = 0.1,
-                   feeds: list[dict[str, np.ndarray]] | None = None, fit_steps: int = 300) -> dict[str, Any]:
+                   feeds: list[dict[str, np.ndarray]] | None = None, fit_steps: int = 300,
+                   floor_factor: float = 1.5,
+                   calib_feeds: list[dict[str, np.ndarray]] | None = None) -> dict[str, Any]:
     """Load ``onnx_path``'s weights into ``model`` in place (see :func:`state_dict_from_onnx`)
     and check that the torch model now computes what the ONNX file computes.
 
     Tensors the file has no trace of (e.g. the norms of encoder levels the decoder never reads,
     pruned by the exporter) keep their fresh values and are listed in ``info["missing"]``. When
     the outputs then differ by more than ``max_rel_l2 / 2``, the missing parameters are fitted to
-    the file's outputs on ``feeds`` (:func:`fit_missing`). Raises ``ValueError`` when the
-    relative L2 difference of the outputs still exceeds ``max_rel_l2``.
+    the file's outputs on ``feeds`` (:func:`fit_missing`; kept only where it brings them closer).
+    When they still differ by more than
+    ``max_rel_l2`` and the file is quantised, the recovered model is accepted within
+    ``floor_factor`` times its own re-quantised copy's difference (:func:`quantization_floor`,
+    calibrated on ``calib_feeds``; ``info["quant_floor"]``): the shipped segmenter differs from
+    its recovered weights by 14 %, and from their copy re-quantised on 32 other training inputs
+    by 16 %. Raises ``ValueError`` otherwise.
     """
     import copy
 
@@ -452,11 +505,23 @@ def load_onnx_into(model: nn.Module, onnx_path: str | os.PathLike, max_rel_l2: f
     feeds = feeds or [random_feeds(model.spec, seed=s) for s in range(7, 11)]
     info["rel_l2_loaded"] = info["rel_l2"] = fidelity(work, onnx_path, feeds)
     if info["rel_l2"] > max_rel_l2 / 2 and info["missing"] and fit_steps:
+        before = copy.deepcopy(work.state_dict())
         info["fit_loss"] = fit_missing(work, onnx_path, info["missing"], feeds, steps=fit_steps)
-        info["rel_l2"] = fidelity(work, onnx_path, feeds)
+        rel = fidelity(work, onnx_path, feeds)
+        if rel < info["rel_l2"]:
+            info["rel_l2"] = rel
+        else:                                   # the fit did not help (e.g. the gap is the file's int8 error)
+            work.load_state_dict(before)
+            info["fit_kept"] = False
     model.load_state_dict(work.state_dict())
-    if not info["rel_l2"] <= max_rel_l2:
+    limit = max_rel_l2
+    if not info["rel_l2"] <= max_rel_l2 and _is_quantized(onnx_path):
+        info["quant_floor"] = quantization_floor(work, onnx_path, feeds, calib_feeds)
+        limit = max(max_rel_l2, floor_factor * info["quant_floor"])
+    if not info["rel_l2"] <= limit:
+        floor = (f"; its own re-quantised copy differs by {info['quant_floor']:.1%}"
+                 if "quant_floor" in info else "")
         raise ValueError(f"{onnx_path}: recovered weights reproduce the file's outputs only to "
-                         f"{info['rel_l2']:.1%} relative L2 (limit {max_rel_l2:.0%}); "
+                         f"{info['rel_l2']:.1%} relative L2 (limit {max_rel_l2:.0%}{floor}); "
                          f"unrecovered: {info['missing'][:4]}")
     return info
