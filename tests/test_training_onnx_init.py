@@ -134,7 +134,7 @@ def test_int8_file_accepted_within_its_own_quantisation_error(tmp_path):
     tight = 1e-4                                    # far below the int8 file's own error
     info = load_onnx_into(build("tree", "tiny"), int8, max_rel_l2=tight, feeds=feeds[:3], fit_steps=0,
                           calib_feeds=feeds)
-    assert info["rel_l2"] > tight and info["rel_l2"] <= 1.5 * info["quant_floor"]
+    assert info["rel_l2"] > tight and info["rel_l2"] <= 2.0 * info["quant_floor"]
     # a floor factor too small refuses it, and the message names the floor
     with pytest.raises(ValueError, match="re-quantised copy"):
         load_onnx_into(build("tree", "tiny"), int8, max_rel_l2=tight, feeds=feeds[:3], fit_steps=0,

@@ -357,7 +357,7 @@ def train_loop(run_dir: str | os.PathLike, *, config: dict[str, Any], model: tor
             # BatchNorms come back as identity + bias and stay frozen (eval) from now on
             from monodbh.models.training.onnx_init import freeze_bn, load_onnx_into
 
-            info = load_onnx_into(model, init_weights, feeds=_init_feeds(config, model.spec),
+            info = load_onnx_into(model, init_weights, feeds=_init_feeds(config, model.spec, n=8),
                                   calib_feeds=_init_feeds(config, model.spec, n=32, seed_offset=101))
             n_bn = freeze_bn(model) if info["folded_bn"] else 0
             config = dict(config, init_weights={

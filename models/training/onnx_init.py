@@ -478,7 +478,7 @@ def quantization_floor(model: nn.Module, onnx_path: str | os.PathLike, feeds: li
 
 def load_onnx_into(model: nn.Module, onnx_path: str | os.PathLike, max_rel_l2: float = 0.1,
                    feeds: list[dict[str, np.ndarray]] | None = None, fit_steps: int = 300,
-                   floor_factor: float = 1.5,
+                   floor_factor: float = 2.0,
                    calib_feeds: list[dict[str, np.ndarray]] | None = None) -> dict[str, Any]:
     """Load ``onnx_path``'s weights into ``model`` in place (see :func:`state_dict_from_onnx`)
     and check that the torch model now computes what the ONNX file computes.
