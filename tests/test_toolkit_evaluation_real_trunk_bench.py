@@ -64,3 +64,26 @@ def test_the_shipped_outlines_fit_their_photos(shared_data):
         f = folder / name
         if f.exists():
             assert hashlib.sha256(f.read_bytes()).hexdigest() == e["sha256"], name
+
+
+def test_another_segmenter_file_is_scored(shared_data, tmp_path):
+    # --model: the same bench with a segmenter file other than the shipped one (here a copy)
+    import shutil
+
+    from monodbh.models.runtime.common import MODELS_DIR
+    names = sorted(rb.load_outlines()["photos"])[:2]
+    for n in names:
+        src = shared_data / "real_trees" / n
+        if not src.exists():
+            pytest.skip(f"{src}: real photo not found")
+        shutil.copy(src, tmp_path / n)
+    model = tmp_path / "other" / "segmenter_int8.onnx"
+    model.parent.mkdir()
+    shutil.copy(MODELS_DIR / "segmenter_int8.onnx", model)
+    shutil.copy(MODELS_DIR / "manifest.json", model.parent / "manifest.json")
+    out = tmp_path / "a.json"
+    assert rb.main([str(tmp_path), "--json", str(out)]) == 0
+    assert rb.main([str(tmp_path), "--model", str(model), "--json", str(tmp_path / "b.json")]) == 0
+    a, b = json.loads(out.read_text()), json.loads((tmp_path / "b.json").read_text())
+    assert {r["photo"] for r in a["rows"]} == set(names)
+    assert a["summary"] == b["summary"]

@@ -21,6 +21,7 @@ and each trunk's IoU, to check the outlines and see the failures.
 Usage::
 
     python -m monodbh.toolkit.evaluation.real_trunk_bench ../shared/data/real_trees [--draw runs/real_trunks] [--json F]
+        [--model OTHER_SEGMENTER.onnx]
 
 Imported by nothing (a command); imports the segmenter's runtime and ``monodbh.calib``.
 """
@@ -196,8 +197,13 @@ def main(argv=None) -> int:
     ap.add_argument("--outlines", type=Path, default=OUTLINES)
     ap.add_argument("--draw", type=Path, help="write <photo>_outlines.png here")
     ap.add_argument("--json", type=Path, help="write the per-trunk rows and the summary here")
+    ap.add_argument("--model", type=Path, help="a segmenter ONNX file other than the shipped one")
     a = ap.parse_args(argv)
-    rows = run(a.folder, load_outlines(a.outlines), a.draw)
+    seg = None
+    if a.model is not None:
+        from monodbh.models.runtime.segmenter import Segmenter
+        seg = Segmenter(a.model)
+    rows = run(a.folder, load_outlines(a.outlines), a.draw, segmenter=seg)
     print("| photo | trunks >= 20 px | mean IoU | found (IoU >= 0.5) | pixel recall |\n|---|---|---|---|---|")
     for name in sorted({r["photo"] for r in rows}):
         s = summarise([r for r in rows if r["photo"] == name])
