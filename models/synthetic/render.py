@@ -349,7 +349,7 @@ def _focus_m(scene: Scene) -> float:
     cam = scene.camera
     if scene.roped_tree:
         t = scene.trees[scene.roped_tree - 1]
-        return float(max(1.0, (cam.R_wc.T @ (t.axis_point(1.3) - cam.t_wc))[2]))
+        return float(max(1.0, (cam.R_wc.T @ (t.axis_point(BREAST_HEIGHT_M) - cam.t_wc))[2]))
     return 8.0
 
 
