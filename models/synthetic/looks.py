@@ -1,9 +1,9 @@
 """The renderer's looks: the same scenes drawn with another appearance.
 
 ``look="randomized"`` (domain randomisation, for training) keeps the default look's procedural
-textures and camera model and randomises their colours, texture contrast, light and camera
-response (:class:`RandomizedShading`, :func:`randomized_light`, :func:`randomized_post`). It
-uses nothing of the held-out look below.
+textures and randomises their colours and contrast, the light and the camera response
+(:class:`RandomizedShading`, :func:`randomized_light`, :func:`randomized_post`). It uses nothing
+of the held-out look below.
 
 ``look="heldout"`` (``dbh synth --look heldout``) renders exactly the scenes, labels, depth and
 ground truth of the default look (same seed, same geometry), with every appearance model
