@@ -115,13 +115,14 @@ def _eval_folder(folder: Path, backend, workers: int, out_dir: Optional[Path], e
         raise fail(f"{folder}: interrupted before any sample was measured", 130)
     m = se.eval_metrics(records)
     stages = se.stage_stats([r["timings_ms"] for r in records])
+    look = samples[0].meta.get("look", "default")
     console = Console()
-    console.print(f"[bold]{folder}[/bold] ({samples[0].meta.get('look', 'default')} look)", highlight=False)
+    console.print(f"[bold]{folder}[/bold] ({look} look)", highlight=False)
     se.print_eval(m, stages, console)
     report = se.eval_report(folder, records, jobs, m, stages, gt_perception=gt_perception,
                             tap_base=tap_base, tap_rope=tap_rope, tap_noise_px=tap_noise_px,
                             rope_known=rope_known, interrupted=interrupted)
-    report["look"] = samples[0].meta.get("look", "default")
+    report["look"] = look
     if interrupted:
         err_console.print(f"{folder}: interrupted after {len(records)} of {len(jobs)} samples", style="yellow")
     return report, interrupted

@@ -49,9 +49,10 @@ def synth(
     W, H = parse_size(size)
     if marker not in ("rope", "strap", "mixed"):
         raise typer.BadParameter(f"expected rope, strap or mixed, got {marker!r}", param_hint="--marker")
-    if look not in ("default", "randomized", "heldout"):
-        raise typer.BadParameter(f"expected default, randomized or heldout, got {look!r}", param_hint="--look")
-    if look == "heldout":
+    from monodbh.models.synthetic.looks import HELDOUT, LOOKS
+    if look not in LOOKS:
+        raise typer.BadParameter(f"expected one of {', '.join(LOOKS)}, got {look!r}", param_hint="--look")
+    if look == HELDOUT:
         from monodbh.models.synthetic.looks import attribution_text, photo_textures
         try:
             tex = photo_textures()

@@ -20,7 +20,7 @@ from monodbh.models.export.quantize import DEFAULT_RECIPES, QuantRecipe, search_
 from monodbh.models.modeling.registry import ModelSpec
 from monodbh.models.runtime.common import MonodbhError, load_manifest
 
-__all__ = ["export_run", "ship_model", "manifest_entry", "sha256_file", "MODELS_DIR",
+__all__ = ["export_run", "ship_model", "manifest_entry", "sha256_file", "shipped_spec", "MODELS_DIR",
            "MANIFEST_NAME"]
 
 #: Folder of the shipped models (the ``monodbh.models`` package folder).
@@ -54,7 +54,7 @@ def _source_or_none(cfg: dict[str, Any] | None):
         return None
 
 
-def _shipped_spec(spec: ModelSpec, shipped_path: Path) -> ModelSpec:
+def shipped_spec(spec: ModelSpec, shipped_path: Path) -> ModelSpec:
     """The shipped file's own spec (its manifest entry: input size, kind-specific constants such
     as the tree network's ``thickness``), so that it is scored by its own conventions on the same
     data; ``spec`` when the manifest has no usable entry."""
@@ -230,7 +230,7 @@ def export_run(run_dir: str | os.PathLike, ship: bool = False, n_calib: int = 32
     if shipped_path.exists():
         try:
             prev_sess = make_session(shipped_path, threads=threads)
-            prev = metric_fn(lambda f, _s=prev_sess: run_session(_s, f), _shipped_spec(spec, shipped_path))
+            prev = metric_fn(lambda f, _s=prev_sess: run_session(_s, f), shipped_spec(spec, shipped_path))
             report["previous"] = {"path": str(shipped_path), "sha256": sha256_file(shipped_path),
                                   "metrics": prev}
         except Exception as e:  # noqa: BLE001 - another architecture/spec: nothing to compare

@@ -196,8 +196,8 @@ def generate_sample(seed: int, index: int = 0, size: tuple[int, int] = (512, 512
     marker : the 1.3 m marker: ``"rope"`` (a round rope, the default), ``"strap"`` (a flat red
         strap 20-50 mm wide) or ``"mixed"`` (either, half and half); see
         :func:`~.scene.sample_scene`.
-    look : ``"default"``, or ``"heldout"``: the same scene with another appearance, for evaluation
-        only (:mod:`.looks`; no training path accepts it).
+    look : ``"default"``, ``"randomized"`` (domain randomisation) or ``"heldout"`` (for evaluation
+        only; no training path accepts it): the same scene with another appearance (:mod:`.looks`).
 
     Returns
     -------

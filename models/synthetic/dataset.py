@@ -34,7 +34,7 @@ def synthesize(folder, count: int, seed: int, size=(512, 512), *, start: int = 0
     """Render ``count`` samples into ``folder`` (resumable: finished samples are skipped).
 
     ``marker``: the 1.3 m marker's kind (:func:`~monodbh.models.synthetic.scene.sample_scene`).
-    ``look``: ``"default"`` or ``"heldout"`` (:mod:`~monodbh.models.synthetic.looks`, evaluation only).
+    ``look``: ``"default"``, ``"randomized"`` or ``"heldout"`` (:mod:`~monodbh.models.synthetic.looks`).
 
     Returns a dict with ``count``, ``seconds``, ``samples_per_s``.
     """

@@ -3,8 +3,8 @@
 Pipeline per sample: rays through the distorted pixel grid -> closest hits -> materials,
 procedural textures, sun + sky + bounce lighting with cast shadows and a canopy-openness term
 -> adaptive supersampling of object edges and of the rope band -> aerial haze -> a phone-like
-camera (exposure, white balance, noise, blur, JPEG); the held-out look (:mod:`.looks`) swaps
-the textures, light and camera. Ground truth (depth, labels, rope mask,
+camera (exposure, white balance, noise, blur, JPEG); the other looks (:mod:`.looks`) change
+the textures' colours or sources, the light and the camera. Ground truth (depth, labels, rope mask,
 per-tree nearest/farthest surface depth z1/z2) comes from the same rays.
 """
 from __future__ import annotations
@@ -367,6 +367,8 @@ def render_scene(scene: Scene, rng: np.random.Generator, *, aa: bool = True, sha
     dict with ``rgb`` (H, W, 3) uint8 (JPEG-decoded), ``jpeg`` bytes, ``depth``, ``semantic``,
     ``instance``, ``rope``, ``z1``, ``z2`` (all (H, W)), ``stats``.
     """
+    if look not in LOOKS:
+        raise ValueError(f"unknown look {look!r} (expected one of {', '.join(LOOKS)})")
     cam = scene.camera
     W, H = cam.width, cam.height
     tm: dict[str, float] = {}
@@ -389,10 +391,8 @@ def render_scene(scene: Scene, rng: np.random.Generator, *, aa: bool = True, sha
         else:
             sh = _RandomizedShader(replace(scene, light=randomized_light(scene.light, lrng)), ms, tracer, face_obj, rng)
             sh._randomized_init(lrng)
-    elif look == "default":
-        sh = _Shader(scene, ms, tracer, face_obj, rng)
     else:
-        raise ValueError(f"unknown look {look!r} (expected one of {', '.join(LOOKS)})")
+        sh = _Shader(scene, ms, tracer, face_obj, rng)
     lap("bvh")
 
     v, u = np.mgrid[0:H, 0:W]
@@ -562,6 +562,6 @@ def render_scene(scene: Scene, rng: np.random.Generator, *, aa: bool = True, sha
         depth=depth.reshape(H, W).astype(np.float32),
         semantic=sem.reshape(H, W), instance=inst.reshape(H, W), rope=rope.reshape(H, W),
         z1=z1.reshape(H, W).astype(np.float32), z2=z2.reshape(H, W).astype(np.float32),
-        stats=dict(triangles=int(len(F)), aa_pixels=int(n_aa), jpeg_quality=q, look=look),
+        stats=dict(triangles=int(len(F)), aa_pixels=int(n_aa), jpeg_quality=q),
         timings_ms=tm,
     )

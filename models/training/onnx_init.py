@@ -444,16 +444,14 @@ def _is_quantized(onnx_path: str | os.PathLike) -> bool:
 def _file_recipe(onnx_path: str | os.PathLike):
     """The quantisation recipe the file was made with (its manifest entry's ``quant_recipe``
     where a ``manifest.json`` beside it lists it, else the export's first default recipe)."""
-    import json
-
     from monodbh.models.export.quantize import DEFAULT_RECIPES
+    from monodbh.models.runtime.common import MonodbhError, load_manifest
     path = Path(onnx_path)
-    name = None
     try:
-        entries = json.loads((path.parent / "manifest.json").read_text()).get("models", {})
-        name = next((e.get("quant_recipe") for e in entries.values() if e.get("file") == path.name), None)
-    except (OSError, ValueError, AttributeError):
-        pass
+        entries = load_manifest(path.parent / "manifest.json")["models"].values()
+    except MonodbhError:
+        entries = []
+    name = next((e.get("quant_recipe") for e in entries if isinstance(e, dict) and e.get("file") == path.name), None)
     return next((r for r in DEFAULT_RECIPES if r.name == name), DEFAULT_RECIPES[0])
 
 

@@ -61,11 +61,9 @@ def score_folder(folder: str | Path, n: int = 120, seed: int = 0, models_dir: Op
     -------
     dict: ``{kind: {metric: value}}`` and ``look``.
     """
-    import dataclasses
-
-    from monodbh.models.export.cli_impl import MODELS_DIR
+    from monodbh.models.export.cli_impl import MODELS_DIR, shipped_spec
     from monodbh.models.export.onnx_io import make_session, run_session
-    from monodbh.models.modeling.registry import ModelSpec
+    from monodbh.models.modeling.registry import get_spec
     from monodbh.models.runtime.common import load_manifest
     from monodbh.models.training.common import BankSource, evaluate_kind, make_source
 
@@ -75,11 +73,9 @@ def score_folder(folder: str | Path, n: int = 120, seed: int = 0, models_dir: Op
     out: dict = {"look": _look(folder)}
     src = make_source(folder, allow_heldout=True)
     for kind in kinds:
-        e = entries[kind]
-        spec = ModelSpec.from_dict(e["spec"])
-        if kind == "tree" and "thickness" not in spec.extra:
-            spec = dataclasses.replace(spec, extra={**spec.extra, "thickness": "z"})
-        sess = make_session(mdir / e["file"], threads=2)
+        path = mdir / entries[kind]["file"]
+        spec = shipped_spec(get_spec(kind), path)          # the file's own conventions
+        sess = make_session(path, threads=2)
         if kind == "rope_finder":
             from monodbh.models.training.rope_finder_bank import cut_folder
             with tempfile.TemporaryDirectory() as tmp:
