@@ -6,7 +6,8 @@ import pytest
 
 from monodbh.toolkit.geometry import RopeRulerConfig, ScaleConfig
 from monodbh.toolkit.geometry.scale import (calibrate_distance, candidate_depth, candidate_rope_diameter,
-                                            capped_by_visible_stem, combine_candidates)
+                                            capped_by_visible_stem, combine_candidates,
+                                            rope_ruler_sigma)
 from monodbh.toolkit.geometry.sigma import sigma_tables
 
 
@@ -77,7 +78,10 @@ def test_the_rope_as_a_ruler_and_its_gates():
     flags = []
     name, (lam, sig) = candidate_rope_diameter(_rope(T), axis, _tables(), flags)
     assert name == "rope_diameter" and flags == []
-    assert lam == pytest.approx(0.01 * 1000 / 8.0 + 0.005, rel=1e-4) and sig == _tables().network["rope_diameter"]
+    assert lam == pytest.approx(0.01 * 1000 / 8.0 + 0.005, rel=1e-4) and sig == pytest.approx(np.hypot(0.08, 0.8 / T))
+    # its sigma follows the pixels it was read in: a thicker marker, read edge to edge, is a finer ruler
+    assert rope_ruler_sigma(20.0, True) == pytest.approx(np.hypot(0.025, 0.45 / 20))
+    assert rope_ruler_sigma(20.0, True) < rope_ruler_sigma(8.0, True) < rope_ruler_sigma(8.0, False)
     # read edge to edge, the thickness is the tube's own (no half-maximum correction)
     _, (lam_e, _) = candidate_rope_diameter(_rope(8.0, edges=True), axis, _tables(), [])
     assert lam_e == pytest.approx(lam, rel=1e-4)

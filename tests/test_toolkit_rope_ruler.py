@@ -47,12 +47,14 @@ def test_full_resolution_reads_the_thickness_the_working_image_halves(dist):
     assert full["thickness_px"] == pytest.approx(6.0, rel=0.2)
     assert full["contrast"] > 0.09
     ruler = rope_ruler(rgb, cam, frame, rope, is_line=True, diameter_known=True)
-    # 6 px is not resolved edge to edge (under four blurs and three pixels): the half-maximum width
-    assert ruler.flags == ["rope_read_at_full_resolution"] and not ruler.edges and not full["edges"]
-    assert ruler.thickness_native_px == full["thickness_px"] and ruler.thickness_px == pytest.approx(3.0, rel=0.2)
+    # 6 px, read edge to edge where that agrees with the detector's width (under four blurs the
+    # width and the blur trade off in the fit, so it is kept only where the two agree)
+    assert ruler.flags == ["rope_read_at_full_resolution", "marker_read_by_edges"] and ruler.edges and full["edges"]
+    assert ruler.thickness_native_px == full["thickness_px"] == pytest.approx(6.0, abs=0.3)
+    assert ruler.thickness_px == pytest.approx(3.0, abs=0.15)
     assert rope_ruler(rgb, cam, frame, rope, is_line=False, diameter_known=True).thickness_px is None
-    assert rope_ruler(rgb, cam, frame, rope, is_line=True, diameter_known=True,
-                      full_resolution=False).flags == []
+    assert "rope_read_at_full_resolution" not in rope_ruler(rgb, cam, frame, rope, is_line=True, diameter_known=True,
+                                                            full_resolution=False).flags
 
 
 def test_a_thick_band_is_read_edge_to_edge_at_full_resolution():

@@ -162,6 +162,12 @@ class RopeRulerConfig:
     #: the red-ness profile's full width at half maximum over the tube's true thickness
     #: (rope-ruler.md)
     fwhm_ratio: float = 0.944
+    #: the marker's distance has the relative 1-sigma ``hypot(floor, px / T)`` for a thickness of
+    #: ``T`` pixels (those it was read in): read edge to edge ``(floor, px)`` =
+    #: ``edge_sigma``, else (half-maximum width) ``fwhm_sigma`` (rope-ruler.md)
+    edge_sigma: tuple[float, float] = (0.025, 0.45)
+    #: ... the half-maximum width's ``(floor, px)`` (it reads a blur-dependent fraction of the tube)
+    fwhm_sigma: tuple[float, float] = (0.08, 0.8)
 
 
 def _sigma_model() -> dict[str, float]:

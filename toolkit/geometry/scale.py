@@ -29,7 +29,7 @@ from .stem_base import StemBase, base_metrology
 from .up import StemAxis
 
 __all__ = ["NETWORK_SCALE_SOURCES", "SOURCE_ORDER", "ScaleChoice", "scale_candidates", "candidate_stem_base",
-           "candidate_rope_diameter", "candidate_pose", "axis_distance_from_depth", "candidate_ground_plane",
+           "candidate_rope_diameter", "rope_ruler_sigma", "candidate_pose", "axis_distance_from_depth", "candidate_ground_plane",
            "candidate_camera_height", "candidate_depth", "combine_candidates", "calibrate_distance",
            "capped_by_visible_stem", "choose_scale"]
 
@@ -97,7 +97,23 @@ def candidate_rope_diameter(perc: Perception, axis: StemAxis, tables: SigmaTable
         return None
     rho = float(perc.rope_diameter_m) / ang       # camera -> the rope at the stem's front
     lt = (rho + 0.5 * float(perc.rope_diameter_m)) / max(1 - axis.sin_half, 1e-6)
-    return "rope_diameter", (lt, tables.network["rope_diameter"])
+    return "rope_diameter", (lt, rope_ruler_sigma(T_native, perc.rope_thickness_edges, cfg))
+
+
+def rope_ruler_sigma(thickness_px: float, edges: bool, config: RopeRulerConfig | None = None) -> float:
+    """The marker ruler's relative 1-sigma for a thickness of ``thickness_px`` pixels (those it
+    was read in), read edge to edge (``edges``) or as the half-maximum width:
+    ``hypot(floor, px / thickness_px)`` with :attr:`~.config.RopeRulerConfig.edge_sigma` or
+    :attr:`~.config.RopeRulerConfig.fwhm_sigma` (decision record ``docs/decisions/rope-ruler.md``).
+
+    Examples
+    --------
+    >>> round(rope_ruler_sigma(18.0, True), 3)
+    0.035
+    """
+    cfg = config or RopeRulerConfig()
+    floor, px = cfg.edge_sigma if edges else cfg.fwhm_sigma
+    return float(np.hypot(floor, px / max(float(thickness_px), 1e-6)))
 
 
 def candidate_pose(camera, axis: StemAxis, tables: SigmaTables) -> Candidate | None:

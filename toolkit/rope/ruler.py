@@ -85,15 +85,24 @@ def rope_ruler(rgb: np.ndarray, camera, frame, rope, *, is_line: bool, diameter_
 
 #: an edge-to-edge thickness is used when its 1-sigma is under this fraction of it
 EDGE_MAX_REL_SIGMA = 0.1
+#: ... and when it is this many times the band detector's half-maximum thickness (0.8-1.25 times
+#: the tube's diameter that thickness implies, ``RopeRulerConfig.fwhm_ratio`` 0.944): outside, the
+#: fit took in the rope's shadow, a tail or the knot (decision record rope-ruler.md)
+EDGE_VS_DETECTOR = (0.85, 1.32)
 
 
 def _edge_width(img: np.ndarray, polyline, thickness_px: float) -> float | None:
     """The marker's edge-to-edge thickness (:func:`~.marker_edges.marker_thickness`) where it is
-    resolved (wider than its blur) and determined to :data:`EDGE_MAX_REL_SIGMA`, else None."""
+    determined to :data:`EDGE_MAX_REL_SIGMA` and agrees with the detector's ``thickness_px``
+    within :data:`EDGE_VS_DETECTOR`, else None."""
     from .marker_edges import marker_thickness
 
-    m = marker_thickness(img, np.asarray(polyline, np.float64), max(float(thickness_px), 1.0))
-    if m is None or not m.resolved or not (m.sigma_px < EDGE_MAX_REL_SIGMA * m.width_px):
+    T = max(float(thickness_px), 1.0)
+    m = marker_thickness(img, np.asarray(polyline, np.float64), T)
+    if m is None or not (m.sigma_px < EDGE_MAX_REL_SIGMA * m.width_px):
+        return None
+    lo, hi = EDGE_VS_DETECTOR
+    if not lo < m.width_px / T < hi:
         return None
     return float(m.width_px)
 
