@@ -10,7 +10,7 @@ from geometry_scenes import level_scene
 def test_stem_hidden_by_a_bush_caps_a_too_far_network_scale():
     """The base is at or below where a bush hides the stem: a network distance beyond the
     metrology through that point is capped to it (5 m true; 8.5 m network; bound 5 x 1.3 / 0.9)."""
-    from monodbh.toolkit.geometry import Perception, measure_from_perception
+    from monodbh.toolkit.geometry import GeometryConfig, Perception, StemBaseConfig, measure_from_perception
     for bush in (True, False):
         rgb, tree, ground, depth, cam = level_scene(bush)
         p = Perception(rgb=rgb, camera=cam, rope_xy=np.array([240.0, 320.0]), rope_dir=np.array([1.0, 0.0]),
@@ -23,9 +23,16 @@ def test_stem_hidden_by_a_bush_caps_a_too_far_network_scale():
             assert "scale_capped_by_visible_stem" in r.flags
             assert r.scale_source.startswith("visible_stem+network")
             assert 6.9 < r.distance_m < 7.6                       # not 8.8: capped near 7.3
-        else:                                                     # the base itself is seen
-            assert r.scale_source.startswith("stem_base"), r.scale_source
+        else:
+            # the edges are followed down to the ground: that end bounds the distance (the foot
+            # is there or lower) and caps the too-far network scale near the truth
+            assert "stem_base_tracked" in r.flags and "scale_capped_by_visible_stem" in r.flags
+            assert r.scale_source.startswith("visible_stem+network"), r.scale_source
             assert r.distance_m == pytest.approx(5.15, rel=0.03)    # to the axis: 5 m + radius
+            # as a base (the option): it sets the scale itself
+            r = measure_from_perception(p, config=GeometryConfig(stem_base=StemBaseConfig(tracked_base_sets_scale=True)))
+            assert r.scale_source.startswith("stem_base"), r.scale_source
+            assert r.distance_m == pytest.approx(5.15, rel=0.03)
             assert "scale_capped_by_visible_stem" not in r.flags
     # a distance calibration (error model) applies to network-led scales only, before the cap
     rgb, tree, ground, depth, cam = level_scene(False)
@@ -100,6 +107,9 @@ def test_stem_base_states():
     n = len(calls)
     assert find(perc(base_finder=finder, extra={"tree_mask_from_rope": True}), []).status == "unconfirmed"
     assert find(perc(), ["width_disagrees_rope"]).status == "unconfirmed" and len(calls) == n
-    # no network: the edge tracker finds the base on the ground
+    # no network: the edge tracker follows the stem down to the ground; that end is a bound,
+    # not a base, unless the option makes it one
     b = find(perc(), [])
+    assert b.status == "tracked" and b.xy is None and abs(b.track_info["end_xy"][1] - 449.5) < 2.0
+    b = find(perc(), [], StemBaseConfig(tracked_base_sets_scale=True))
     assert b.status == "ground" and b.track_info is not None and abs(b.xy[1] - 449.5) < 2.0

@@ -99,7 +99,7 @@ def collect(folder: str | Path, limit: int | None = None, progress: bool = True,
                        stem_width_fx1000=(1000.0 * r.debug["stem_width_px"] / r.debug["fx_px"]
                                           if r.debug.get("fx_px") else None),
                        base_status=next((f[len("stem_base_"):] for f in r.flags if f.startswith("stem_base_")
-                                         and f[len("stem_base_"):] in ("edge", "occluded", "lost", "off_mask",
+                                         and f[len("stem_base_"):] in ("edge", "occluded", "tracked", "lost", "off_mask",
                                                                        "unconfirmed")), None),
                        scale_bound_log_err=(float(np.log(r.debug["scale_bound"][0] / lam_true))
                                             if r.debug.get("scale_bound") else None),

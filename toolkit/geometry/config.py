@@ -73,6 +73,10 @@ class StemBaseConfig:
     #: the tracking stops where the stem's interior colour departs from its colour below the rope
     #: by more than this many standard deviations (grass or litter in front) (stem-base.md)
     max_colour_z: float = 4.0
+    #: where the edge tracker ends on what looks like the ground, that end sets the scale as a
+    #: base (``stem_base``); off: it only bounds the distance from above (base status
+    #: "tracked", flag ``stem_base_tracked``), as an occluded end does (stem-base.md)
+    tracked_base_sets_scale: bool = False
 
 
 @dataclass(frozen=True)
@@ -143,7 +147,7 @@ class ScaleConfig:
     depth_gt_sigma: float = 0.005
     #: the edge tracker's outcomes whose lowest tracked point bounds the distance from above
     #: (visible-stem-bound.md)
-    bound_statuses: tuple[str, ...] = ("occluded",)
+    bound_statuses: tuple[str, ...] = ("occluded", "tracked")
     #: a scale more than this fraction beyond the visible stem's bound is capped to the bound
     #: (visible-stem-bound.md)
     bound_slack: float = 0.03

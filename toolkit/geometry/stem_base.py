@@ -34,8 +34,10 @@ class StemBase:
     xy : (2,) the stem's front contact with the ground (pixels), or None.
     status : "user" (tapped), "network" / "network_weak" (the stem-base network, its probability
         at least / under :attr:`~.config.StemBaseConfig.p_strong`), "unconfirmed" (no segmented
-        stem or edges to confirm a tracked base: not looked for), or the edge tracker's status
-        ("ground", "occluded", "off_mask", "edge", "lost").
+        stem or edges to confirm a tracked base: not looked for), "tracked" (the edge tracker
+        ended on what looks like the ground: a bound, not a base, unless
+        :attr:`~.config.StemBaseConfig.tracked_base_sets_scale`), or the edge tracker's status
+        ("ground" with that option, "occluded", "off_mask", "edge", "lost").
     track_info : the edge tracker's ``info`` when it ran (:func:`~.stem_track.track_stem_base`).
     """
     xy: np.ndarray | None
@@ -83,6 +85,9 @@ def find_stem_base(perc: Perception, gray: np.ndarray, edges: TrunkEdges, axis: 
     xy, status, info = track_stem_base(gray, edges, perc.ground_mask, perc.tree_mask, rgb=perc.rgb,
                                        rope_half_px=perc.rope_half_px, config=cfg)
     res.debug["base_tracked"] = (xy, status, info)
+    if status == "ground" and not cfg.tracked_base_sets_scale:
+        # where the edges end the foot is, or something hides it: the end only bounds the distance
+        return StemBase(None, "tracked", info)
     return StemBase(xy, status, info)
 
 
