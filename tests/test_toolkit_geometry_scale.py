@@ -92,6 +92,10 @@ def test_the_rope_as_a_ruler_and_its_gates():
     # a looser configuration trusts the 4 px rope
     assert candidate_rope_diameter(_rope(T, native_px=4.0), axis, _tables(), [], RopeRulerConfig(min_px=3.0))
     assert candidate_rope_diameter(_rope(T, diameter_m=None), axis, _tables(), []) is None
+    # found (by the rope finder, through the stem's profile) but not seen as a line: no thickness
+    flags = []
+    assert candidate_rope_diameter(_rope(None), axis, _tables(), flags) is None
+    assert flags == ["marker_not_read_for_scale"]
 
 
 def test_the_depth_maps_own_distance():

@@ -72,11 +72,16 @@ def candidate_rope_diameter(perc: Perception, axis: StemAxis, tables: SigmaTable
                             config: RopeRulerConfig | None = None) -> Candidate | None:
     """The rope as a ruler (``perc.rope_diameter_m`` given): a tube of known diameter D subtends
     D / rho radians at distance rho, seen across its band at the stem's front. Flags
-    ``rope_too_thin_for_scale`` / ``rope_too_faint_for_scale`` where its thickness is not trusted."""
+    ``rope_too_thin_for_scale`` / ``rope_too_faint_for_scale`` where its thickness is not trusted,
+    ``marker_not_read_for_scale`` where the rope was found but not seen as a line (by the rope
+    finder or through the stem's profile: no thickness to read)."""
     cfg = config or RopeRulerConfig()
     if not perc.rope_diameter_m:
         return None
-    T_read = float(perc.rope_thickness_px or 0.0)
+    if perc.rope_thickness_px is None:
+        flags.append("marker_not_read_for_scale")    # found, but not seen as a line (no thickness)
+        return None
+    T_read = float(perc.rope_thickness_px)
     # the marker's thickness: edge to edge as read, or the half-maximum width (which reads narrow)
     T = T_read if perc.rope_thickness_edges else T_read / cfg.fwhm_ratio
     # blur widens thin ropes: the gate is on the pixels it was measured in (the full-resolution

@@ -62,6 +62,7 @@ FLAG_TEXT = {
     "stem_base_unconfirmed": "no stem foot was looked for (stem edges not confirmed)",
     "stem_base_ground": "the stem's foot was traced on the ground",
     "rope_too_thin_for_scale": "the marker is too thin in the photo to set the scale",
+    "marker_not_read_for_scale": "the marker was found but its thickness could not be read",
     "rope_too_faint_for_scale": "the marker's edges are too faint to set the scale",
     "rope_read_at_full_resolution": "the marker's thickness was read on the full-resolution photo",
     "no_ground_plane": "no ground plane was found",
