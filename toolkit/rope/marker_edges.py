@@ -36,7 +36,8 @@ class MarkerThickness:
     ----------
     width_px : edge-to-edge thickness perpendicular to the band (pixels of the image read).
     sigma_px : its 1-sigma: the spread of the same fit on four stretches along the band over
-        sqrt(4), at least the whole fit's own standard error.
+        sqrt(4) (an unresolved marker's stretches with the whole band's blur), at least the
+        whole fit's own standard error.
     blur_px : the fitted Gaussian blur (1-sigma, pixels).
     contrast : the box's colour step against the background (norm of its three channels).
     n_columns : profiles averaged.
@@ -144,15 +145,16 @@ def _gradient_edges(off: np.ndarray, prof: np.ndarray, t1: float, t2: float, s: 
     return (out[0], out[1]) if out[1] - out[0] > 0.3 else None
 
 
-def _fit(off: np.ndarray, prof: np.ndarray, T: float):
+def _fit(off: np.ndarray, prof: np.ndarray, T: float, blur: float | None = None):
     """Fit a blurred box with a linear interior on a linear background to each colour channel of
     the mean profile ``prof`` (M, 3), the edges and blur shared (variable projection): ``(t1,
     t2, s, contrast, stderr of t2 - t1, resolved)`` or None (``resolved``: see
-    :class:`MarkerThickness`)."""
+    :class:`MarkerThickness`). With ``blur`` given, the blur is that (pixels, 1-sigma) and only
+    the edges are fitted (no gradient-peak edges then: ``resolved`` is False)."""
     from scipy.optimize import least_squares
 
     def resid(p):
-        B = _basis(off, *p)
+        B = _basis(off, p[0], p[1], p[2] if blur is None else blur)
         coef, *_ = np.linalg.lstsq(B, prof, rcond=None)
         return (B @ coef - prof).ravel()
 
@@ -169,13 +171,18 @@ def _fit(off: np.ndarray, prof: np.ndarray, T: float):
         t1_0, t2_0 = -0.5 * T, 0.5 * T
     lo, hi = [off[0], off[0], 0.15], [off[-1], off[-1], max(3.0, 0.5 * T)]
     x0 = np.clip([t1_0, t2_0, 0.8], np.add(lo, 1e-6), np.subtract(hi, 1e-6))
+    n_par = 3 if blur is None else 2
     try:
-        sol = least_squares(resid, x0, bounds=(lo, hi), x_scale=[1.0, 1.0, 0.5], max_nfev=300)
+        sol = least_squares(resid, x0[:n_par], bounds=(lo[:n_par], hi[:n_par]), x_scale=[1.0, 1.0, 0.5][:n_par],
+                            max_nfev=300)
     except ValueError:
         return None
-    t1, t2, s = (float(v) for v in sol.x)
+    t1, t2 = float(sol.x[0]), float(sol.x[1])
+    s = float(sol.x[2]) if blur is None else float(blur)
     if not t2 - t1 > 0.3:
         return None
+    if blur is not None:
+        return t1, t2, s, float("nan"), float("nan"), False
     # a marker several blurs wide: its silhouette is the outermost colour-gradient peak on each
     # side (a rope's shading and highlight make gradients inside it, not outside)
     resolved = False
@@ -233,7 +240,9 @@ def marker_thickness(rgb: np.ndarray, polyline: np.ndarray, thickness_px: float,
     parts = []
     for chunk in np.array_split(np.arange(len(prof)), pieces):
         if len(chunk) >= 3:
-            f = _fit(off, prof[chunk].mean(0), width)
+            # the blur is the whole band's (optics and JPEG): an unresolved marker's stretches are
+            # fitted with it, so that their spread is the width's, not the width-blur trade-off's
+            f = _fit(off, prof[chunk].mean(0), width, blur=None if resolved else s)
             if f is not None:
                 parts.append(f[1] - f[0])
     spread = float(np.std(parts, ddof=1) / np.sqrt(len(parts))) if len(parts) >= 2 else float("inf")
