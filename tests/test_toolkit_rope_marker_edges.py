@@ -72,3 +72,22 @@ def test_a_marker_thinner_than_its_blur_is_not_resolved():
     assert m is not None and not m.resolved
     img, line = _crop(12.4, kind="strap", blur_px=1.0)
     assert marker_thickness(img, line, 12.4).resolved
+
+
+@pytest.mark.parametrize("width", [5.5, 7.0])
+def test_an_unresolved_marker_keeps_the_blur_of_the_whole_band_in_its_stretches(width):
+    """Under about four blurs the width and the blur trade off in a fit; the four stretches that
+    size the 1-sigma are fitted with the whole band's blur, so a clean unresolved strap is read
+    within a pixel and its 1-sigma stays under the ruler's 10 % gate."""
+    from monodbh.toolkit.rope.marker_edges import _fit, _profiles
+    for seed in range(3):
+        img, line = _crop(width, kind="strap", blur_px=1.5, jpeg_quality=90, seed=seed)
+        m = marker_thickness(img, line, width)
+        assert m is not None and not m.resolved
+        assert abs(m.width_px - width) < 1.0 and m.sigma_px < 0.1 * m.width_px, (width, seed, m)
+        # with the blur given, only the edges are fitted (the blur is returned as given): at the
+        # band's own fitted blur (optics and JPEG's half-resolution colour) the same width
+        off, prof = _profiles(img, line, width, 0.7, 0.5)
+        f = _fit(off, prof.mean(0), width, blur=m.blur_px)
+        assert f is not None and f[2] == m.blur_px and not f[5]
+        assert abs((f[1] - f[0]) - m.width_px) < 0.05
