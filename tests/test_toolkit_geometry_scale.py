@@ -76,25 +76,25 @@ def test_the_rope_as_a_ruler_and_its_gates():
     axis = SimpleNamespace(sin_half=0.0)
     T = 8.0 * RopeRulerConfig().fwhm_ratio              # a 10 mm rope whose tube is 8 px: 1.25 m away
     flags = []
-    name, (lam, sig) = candidate_rope_diameter(_rope(T), axis, _tables(), flags)
+    name, (lam, sig) = candidate_rope_diameter(_rope(T), axis, flags)
     assert name == "rope_diameter" and flags == []
     assert lam == pytest.approx(0.01 * 1000 / 8.0 + 0.005, rel=1e-4) and sig == pytest.approx(np.hypot(0.08, 0.8 / T))
     # its sigma follows the pixels it was read in: a thicker marker, read edge to edge, is a finer ruler
     assert rope_ruler_sigma(20.0, True) == pytest.approx(np.hypot(0.025, 0.45 / 20))
     assert rope_ruler_sigma(20.0, True) < rope_ruler_sigma(8.0, True) < rope_ruler_sigma(8.0, False)
     # read edge to edge, the thickness is the tube's own (no half-maximum correction)
-    _, (lam_e, _) = candidate_rope_diameter(_rope(8.0, edges=True), axis, _tables(), [])
+    _, (lam_e, _) = candidate_rope_diameter(_rope(8.0, edges=True), axis, [])
     assert lam_e == pytest.approx(lam, rel=1e-4)
     # too thin where it was measured (the native pixels decide), too faint
-    assert candidate_rope_diameter(_rope(T, native_px=4.0), axis, _tables(), flags) is None
-    assert candidate_rope_diameter(_rope(T, contrast=0.05), axis, _tables(), flags) is None
+    assert candidate_rope_diameter(_rope(T, native_px=4.0), axis, flags) is None
+    assert candidate_rope_diameter(_rope(T, contrast=0.05), axis, flags) is None
     assert flags == ["rope_too_thin_for_scale", "rope_too_faint_for_scale"]
     # a looser configuration trusts the 4 px rope
-    assert candidate_rope_diameter(_rope(T, native_px=4.0), axis, _tables(), [], RopeRulerConfig(min_px=3.0))
-    assert candidate_rope_diameter(_rope(T, diameter_m=None), axis, _tables(), []) is None
+    assert candidate_rope_diameter(_rope(T, native_px=4.0), axis, [], RopeRulerConfig(min_px=3.0))
+    assert candidate_rope_diameter(_rope(T, diameter_m=None), axis, []) is None
     # found (by the rope finder, through the stem's profile) but not seen as a line: no thickness
     flags = []
-    assert candidate_rope_diameter(_rope(None), axis, _tables(), flags) is None
+    assert candidate_rope_diameter(_rope(None), axis, flags) is None
     assert flags == ["marker_not_read_for_scale"]
 
 

@@ -68,7 +68,7 @@ def candidate_stem_base(camera, axis: StemAxis, base: StemBase, up_sources: dict
     return cand
 
 
-def candidate_rope_diameter(perc: Perception, axis: StemAxis, tables: SigmaTables, flags: list[str],
+def candidate_rope_diameter(perc: Perception, axis: StemAxis, flags: list[str],
                             config: RopeRulerConfig | None = None) -> Candidate | None:
     """The rope as a ruler (``perc.rope_diameter_m`` given): a tube of known diameter D subtends
     D / rho radians at distance rho, seen across its band at the stem's front. Flags
@@ -189,7 +189,7 @@ def scale_candidates(perc: Perception, edges: TrunkEdges, axis: StemAxis, base: 
     cfg = config or GeometryConfig()
     cam = perc.camera
     found = [candidate_stem_base(cam, axis, base, up_sources, tables, flags),
-             candidate_rope_diameter(perc, axis, tables, flags, cfg.rope_ruler)]
+             candidate_rope_diameter(perc, axis, flags, cfg.rope_ruler)]
     if "pose" in up_sources and not any(c is not None and c[0] == "pose" for c in found):
         found.append(candidate_pose(cam, axis, tables))
     lam_axis = None if perc.depth is None else axis_distance_from_depth(perc, edges, axis)
