@@ -155,3 +155,14 @@ def test_width_alone_is_free_of_the_scale():
     m = eval_metrics(recs)
     assert m["width_median_abs_err_pct"] == pytest.approx(2.5) and m["width_p90_abs_err_pct"] == 10.0
     assert m["width_bias_pct"] == pytest.approx(0.5)
+
+
+def test_the_error_against_the_silhouette_removes_the_stems_out_of_roundness():
+    # a stem that shows 10 % wider than its tape DBH, read exactly as it shows: 10 % against the
+    # tape, 0 % against the silhouette; a round stem read 5 % wide stays 5 % off
+    recs = [{"gt_dbh_cm": 20.0, "dbh_cm": 22.0, "dbh_sigma_cm": 2.0, "error": None, "roundness_pct": 10.0},
+            {"gt_dbh_cm": 20.0, "dbh_cm": 21.0, "dbh_sigma_cm": 2.0, "error": None, "roundness_pct": 0.0}]
+    m = eval_metrics(recs)
+    assert m["rel_mae_pct"] == pytest.approx(7.5)
+    assert m["silhouette_rel_mae_pct"] == pytest.approx(2.5)
+    assert m["roundness_mean_abs_pct"] == pytest.approx(5.0)

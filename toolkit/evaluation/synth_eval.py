@@ -233,8 +233,10 @@ def eval_metrics(records: Sequence[dict]) -> dict:
         ``by_rope_px`` (detection rate and MAE per bin of ``gt_rope_px``, where records have it),
         ``width_median_abs_err_pct``, ``width_p90_abs_err_pct``, ``width_bias_pct`` (the stem's
         width alone, ``width_err_pct``, over the measured samples that have it),
-        ``roundness_median_abs_pct`` (median ``|roundness_pct|``: the single-view floor against
-        the tape DBH).
+        ``roundness_median_abs_pct``, ``roundness_mean_abs_pct`` (median and mean
+        ``|roundness_pct|``: the single-view floor against the tape DBH; the mean is the floor of
+        ``rel_mae_pct``), ``silhouette_rel_mae_pct`` (the relative MAE against the true
+        silhouette diameter instead of the tape: the error a single view could avoid).
     """
     roped = [r for r in records if r.get("gt_dbh_cm") is not None]
     norope = [r for r in records if r.get("gt_dbh_cm") is None]
@@ -257,6 +259,9 @@ def eval_metrics(records: Sequence[dict]) -> dict:
     werr = [float(r["width_err_pct"]) for r in meas if r.get("width_err_pct") is not None]
     wabs = sorted(abs(w) for w in werr)
     rnd = [abs(float(r["roundness_pct"])) for r in meas if r.get("roundness_pct") is not None]
+    # the DBH against the silhouette diameter (the tape DBH times 1 + roundness)
+    sil_rel = [abs((1.0 + e / float(r["gt_dbh_cm"])) / (1.0 + float(r["roundness_pct"]) / 100.0) - 1.0) * 100.0
+               for e, r in zip(err, meas) if r.get("roundness_pct") is not None and r["gt_dbh_cm"] > 0]
 
     return {
         "samples": len(records), "roped": len(roped), "no_rope": len(norope), "measured": len(meas),
@@ -282,6 +287,8 @@ def eval_metrics(records: Sequence[dict]) -> dict:
         "width_p90_abs_err_pct": wabs[min(len(wabs) - 1, math.ceil(0.9 * len(wabs)) - 1)] if wabs else None,
         "width_bias_pct": statistics.median(werr) if werr else None,
         "roundness_median_abs_pct": statistics.median(rnd) if rnd else None,
+        "roundness_mean_abs_pct": mean(rnd),
+        "silhouette_rel_mae_pct": mean(sil_rel),
         "width_by_estimator": _width_by_estimator(meas),
     }
 
@@ -402,8 +409,9 @@ def _accuracy_rows(m: dict) -> list[tuple[str, str]]:
         *[(f"width alone, {k} estimator", f"{_fmt(v['median_abs_pct'], '{:.1f}')} / "
                                            f"{_fmt(v['p90_abs_pct'], '{:.1f}')} % ({v['n']})")
           for k, v in (m.get("width_by_estimator") or {}).items()],
-        ("silhouette vs tape (floor), median", _fmt(m.get("roundness_median_abs_pct"),
-                                                                          "{:.1f} %")),
+        ("silhouette vs tape (floor), median / mean", f"{_fmt(m.get('roundness_median_abs_pct'), '{:.1f}')} / "
+                                                      f"{_fmt(m.get('roundness_mean_abs_pct'), '{:.1f}')} %"),
+        ("relative MAE against the silhouette", _fmt(m.get("silhouette_rel_mae_pct"), "{:.1f} %")),
         ("|err| <= 1 sigma", _fmt(m["coverage_1sigma"], pct=True)),
         ("|err| <= 2 sigma", _fmt(m["coverage_2sigma"], pct=True)),
         ("no-rope scenes correctly refused", f"{_fmt(m['refusal_rate'], pct=True)}"
