@@ -113,3 +113,35 @@ def test_stem_base_states():
     assert b.status == "tracked" and b.xy is None and abs(b.track_info["end_xy"][1] - 449.5) < 2.0
     b = find(perc(), [], StemBaseConfig(tracked_base_sets_scale=True))
     assert b.status == "ground" and b.track_info is not None and abs(b.xy[1] - 449.5) < 2.0
+
+
+def test_a_network_base_above_the_segmented_stem_is_a_bush_in_front_not_the_foot():
+    """The stem is segmented down to row 449 (0.0 m); a network "base" at row 390 (0.5 m up,
+    the top of a bush in front) would put the stem 1.3 / 0.8 farther: it only bounds the
+    distance, through the lowest segmented point; a base near the mask's end is kept."""
+    from monodbh.toolkit.geometry import Perception, StemBaseConfig
+    from monodbh.toolkit.geometry.stem_base import find_stem_base, visible_stem_bound
+    from monodbh.toolkit.result import MeasureResult
+    rgb, tree, ground, cam, edges, axis = _level_stem()
+    gray = rgb.astype(np.float32).mean(2)
+
+    def find(base_row, mask=tree, config=None):
+        finder = lambda *a: SimpleNamespace(xy=(240.0, base_row), p_base=0.95)
+        p = Perception(rgb=rgb, camera=cam, rope_xy=np.array([240.0, 320.0]), rope_dir=np.array([1.0, 0.0]),
+                       rope_half_px=2.0, tree_mask=mask, ground_mask=ground, base_finder=finder)
+        flags = []
+        return find_stem_base(p, gray, edges, axis, {}, MeasureResult(photo=""), flags, config), flags
+
+    b, flags = find(390.0)
+    assert b.xy is None and b.status == "occluded" and flags == ["stem_base_above_visible_stem"]
+    assert abs(b.track_info["end_xy"][1] - 449.0) < 1.5
+    bound, _ = visible_stem_bound(cam, axis, b)
+    assert bound == pytest.approx(np.hypot(5.15, 0.2), rel=0.03)      # the true distance: the stem ends at its foot
+    # leaves in front (gaps under half a stem width) do not end the segmented stem
+    holes = tree.copy()
+    holes[400:404] = False
+    assert find(390.0, holes)[0].status == "occluded"
+    # the foot itself, or a base within the allowed overrun, stays a base
+    assert find(449.0)[0].status == "network"
+    assert find(430.0)[0].status == "network"                            # 0.15 of the span above the mask's end
+    assert find(430.0, config=StemBaseConfig(mask_overrun_max=0.1))[0].status == "occluded"

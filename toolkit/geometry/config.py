@@ -77,6 +77,11 @@ class StemBaseConfig:
     #: base (``stem_base``); off: it only bounds the distance from above (base status
     #: "tracked", flag ``stem_base_tracked``), as an occluded end does (stem-base.md)
     tracked_base_sets_scale: bool = False
+    #: where the segmented stem runs on below the network's base by more than this fraction of
+    #: the rope-to-base span, that base is a bush or a fallen branch in front of the stem, not
+    #: its foot: the lowest segmented point only bounds the distance (base status "occluded",
+    #: flag ``stem_base_above_visible_stem``) (stem-base.md)
+    mask_overrun_max: float = 0.25
 
 
 @dataclass(frozen=True)

@@ -45,6 +45,48 @@ class StemBase:
     track_info: dict | None = None
 
 
+def _stem_mask_end(mask: np.ndarray, c: np.ndarray, a: np.ndarray, width_px: float, t_max: float) -> float:
+    """How far (pixels from ``c`` down the unit direction ``a``) the (H, W) bool ``mask`` covers
+    the stem's middle: rows whose central 60 % is at least half inside the mask, followed down
+    across gaps of up to half a stem width (leaves in front); 0 where the first rows are not."""
+    H, W = mask.shape
+    u = np.array([a[1], -a[0]])
+    t = np.arange(0.0, max(1.0, t_max), 1.0)
+    s = np.linspace(-0.3, 0.3, 9) * width_px
+    P = c[None, None] + t[:, None, None] * a[None, None] + s[None, :, None] * u[None, None]
+    x, y = np.rint(P[..., 0]).astype(int), np.rint(P[..., 1]).astype(int)
+    inside = (x >= 0) & (x < W) & (y >= 0) & (y < H)
+    hit = np.zeros(x.shape, bool)
+    hit[inside] = mask[y[inside], x[inside]]
+    rows = t[hit.sum(1) >= 0.5 * len(s)]
+    end, max_gap = 0.0, max(3.0, 0.5 * width_px)
+    for r in rows:
+        if r - end > max_gap:
+            break
+        end = float(r)
+    return end
+
+
+def _below_visible_stem(perc: Perception, edges: TrunkEdges, xy: np.ndarray,
+                        config: StemBaseConfig) -> np.ndarray | None:
+    """The lowest point of the segmented stem (2,) where it runs on below the base ``xy`` by more
+    than ``config.mask_overrun_max`` of the rope-to-base span, else None."""
+    if perc.tree_mask is None:
+        return None
+    c = 0.5 * (np.asarray(edges.left_xy, np.float64) + np.asarray(edges.right_xy, np.float64))
+    a = normalize(np.asarray(edges.along, np.float64))
+    t_base = float((xy - c) @ a)
+    if t_base < 0:
+        a, t_base = -a, -t_base
+    if t_base <= 0:
+        return None
+    t_end = _stem_mask_end(np.asarray(perc.tree_mask, bool), c, a, float(edges.width_px),
+                           float(np.hypot(*perc.tree_mask.shape)))
+    if t_end <= (1.0 + config.mask_overrun_max) * t_base:
+        return None
+    return c + t_end * a
+
+
 def _base_from_network(perc: Perception, edges: TrunkEdges, axis: StemAxis, up_sources: dict,
                        res: MeasureResult, flags: list[str], config: StemBaseConfig,
                        up_config: UpConfig | None) -> StemBase | None:
@@ -57,8 +99,14 @@ def _base_from_network(perc: Perception, edges: TrunkEdges, axis: StemAxis, up_s
     res.debug["base_network"] = est
     if not est:
         return None
+    xy = np.asarray(est.xy, np.float64)
+    end = _below_visible_stem(perc, edges, xy, config)
+    if end is not None:
+        # the stem is seen lower than that "base": something in front of the stem ends there
+        flags.append("stem_base_above_visible_stem")
+        return StemBase(None, "occluded", {"end_xy": end, "network_xy": xy})
     flags.append("stem_base_from_network")
-    return StemBase(np.asarray(est.xy, np.float64), "network_weak" if est.p_base < config.p_strong else "network")
+    return StemBase(xy, "network_weak" if est.p_base < config.p_strong else "network")
 
 
 def find_stem_base(perc: Perception, gray: np.ndarray, edges: TrunkEdges, axis: StemAxis, up_sources: dict,
