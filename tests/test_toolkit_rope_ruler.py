@@ -79,3 +79,21 @@ def test_full_resolution_needs_a_larger_photo():
     frame = work_frame(rgb, cam, 1600)
     rope = detect_rope(frame.image, None)
     assert rope and rope_at_full_resolution(rgb, cam, frame, rope) is None
+
+
+def test_a_strap_wider_than_the_detectors_window_is_read_edge_to_edge():
+    """The band detector can read a wide strap as a stripe of it (a third of its width); the edge
+    reading, 3x that, is read again in a window sized by itself and kept where the half-maximum
+    width there agrees; a rope's dark shadow below it, which widens the edge fit but not the red,
+    is still refused."""
+    from marker_crops import marker_crop
+    from monodbh.toolkit.rope.ruler import _edge_width
+    for w in (20.0, 28.0):
+        img, pl = marker_crop(w, kind="strap", size=(320, 160), centre_y=78.3, blur_px=1.0)
+        for T in (w, 0.6 * w, 0.3 * w):
+            assert _edge_width(img, pl, T) == pytest.approx(w, abs=0.3)
+    img, pl = marker_crop(10.0, kind="rope", size=(320, 120), centre_y=50.3, blur_px=0.8)
+    shaded = img.astype(np.float32)
+    shaded[56:68] *= 0.45                                    # the rope's shadow on the bark below it
+    shaded = shaded.clip(0, 255).astype(np.uint8)
+    assert _edge_width(shaded, pl, 10.0) is None

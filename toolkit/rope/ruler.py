@@ -91,18 +91,34 @@ EDGE_MAX_REL_SIGMA = 0.1
 EDGE_VS_DETECTOR = (0.85, 1.32)
 
 
+#: a strap the detector read as a stripe of it: its edge-to-edge width is kept where it is this many
+#: times the half-maximum width of its mean profile (decision record rope-ruler.md)
+EDGE_VS_WIDE_FWHM = (0.85, 1.15)
+
+
 def _edge_width(img: np.ndarray, polyline, thickness_px: float) -> float | None:
     """The marker's edge-to-edge thickness (:func:`~.marker_edges.marker_thickness`) where it is
     determined to :data:`EDGE_MAX_REL_SIGMA` and agrees with the detector's ``thickness_px``
-    within :data:`EDGE_VS_DETECTOR`, else None."""
+    within :data:`EDGE_VS_DETECTOR`, else None.
+
+    The band detector can read a wide strap as a stripe of it. Where the half-maximum width of
+    the band's mean profile is beyond that agreement, the edges are read again in a window sized
+    by it and kept where they agree with it within :data:`EDGE_VS_WIDE_FWHM`."""
     from .marker_edges import marker_thickness
+    from .profile import rope_profile_fwhm
 
     T = max(float(thickness_px), 1.0)
-    m = marker_thickness(img, np.asarray(polyline, np.float64), T)
-    if m is None or not (m.sigma_px < EDGE_MAX_REL_SIGMA * m.width_px):
-        return None
+    P = np.asarray(polyline, np.float64)
     lo, hi = EDGE_VS_DETECTOR
-    if not lo < m.width_px / T < hi:
+    m = marker_thickness(img, P, T)
+    if m is not None and m.sigma_px < EDGE_MAX_REL_SIGMA * m.width_px and lo < m.width_px / T < hi:
+        return float(m.width_px)
+    fwhm = rope_profile_fwhm(img, P, T)[0]
+    if not (np.isfinite(fwhm) and fwhm / T >= hi):
+        return None
+    m = marker_thickness(img, P, fwhm)
+    lo, hi = EDGE_VS_WIDE_FWHM
+    if m is None or not (m.sigma_px < EDGE_MAX_REL_SIGMA * m.width_px and lo < m.width_px / fwhm < hi):
         return None
     return float(m.width_px)
 
