@@ -97,3 +97,46 @@ def test_a_strap_wider_than_the_detectors_window_is_read_edge_to_edge():
     shaded[56:68] *= 0.45                                    # the rope's shadow on the bark below it
     shaded = shaded.clip(0, 255).astype(np.uint8)
     assert _edge_width(shaded, pl, 10.0) is None
+
+
+def test_a_finder_band_is_read_as_a_wide_marker():
+    """The rope finder's band has no thickness of its own (its rough one here a third of the
+    truth): with the marker's width known it is read as a wide marker, edge to edge on the
+    full-resolution photo; unknown width, no finder band or no edge reading: no ruler."""
+    from types import SimpleNamespace
+    from monodbh.toolkit.rope.ruler import wide_marker_width
+    rgb = _photo(thick=24.0, seed=3)
+    H, W = rgb.shape[:2]
+    f = 0.8 * W
+    cam = Camera([[f, 0, W / 2 - 0.5], [0, f, H / 2 - 0.5], [0, 0, 1]], [0.0] * 5, (W, H))
+    frame = work_frame(rgb, cam, 1600)
+    band = detect_rope(frame.image, None)
+    assert band
+    finder = SimpleNamespace(polyline=band.polyline, center_xy=band.center_xy, thickness_px=4.0)
+    ruler = rope_ruler(rgb, cam, frame, finder, is_line=False, diameter_known=True, finder_band=True)
+    assert ruler.flags == ["rope_read_at_full_resolution", "marker_read_by_edges"] and ruler.edges
+    assert ruler.thickness_native_px == pytest.approx(24.0, abs=0.5)
+    assert ruler.thickness_px == pytest.approx(12.0, abs=0.25) and ruler.contrast > 0.09
+    assert rope_ruler(rgb, cam, frame, finder, is_line=False, diameter_known=False, finder_band=True).thickness_px is None
+    assert rope_ruler(rgb, cam, frame, finder, is_line=False, diameter_known=True).thickness_px is None
+    assert rope_ruler(rgb, cam, frame, finder, is_line=False, diameter_known=True, finder_band=True,
+                      edges=False).thickness_px is None
+    # on the working image alone
+    small = rope_ruler(rgb, cam, frame, finder, is_line=False, diameter_known=True, finder_band=True,
+                       full_resolution=False)
+    assert small.flags == ["marker_read_by_edges"] and small.thickness_px == pytest.approx(12.0, abs=0.4)
+    w, by_edges = wide_marker_width(frame.image, band.polyline, 4.0)
+    assert by_edges and w == pytest.approx(12.0, abs=0.4)
+    # a band 12 px thick at one end and 36 px at the other: its stretches disagree, so the edges
+    # do not hold; the mean profile's half-maximum width stands in, only when asked
+    rng = np.random.default_rng(0)
+    img = np.zeros((200, 320, 3), np.float32)
+    img[:] = (112, 96, 80)
+    yy, xx = np.mgrid[0:200, 0:320]
+    inside = (np.abs(yy - 100.0) <= 6 + 12 * xx / 320).astype(np.float32)[..., None]
+    img = img * (1 - inside) + np.array([175, 28, 22], np.float32) * inside
+    img = np.clip(cv2.GaussianBlur(img, (0, 0), 1.0) + rng.normal(0, 3, img.shape), 0, 255).astype(np.uint8)
+    line = np.array([[20.0, 100.0], [300.0, 100.0]])
+    assert wide_marker_width(img, line, 6.0) is None
+    w, by_edges = wide_marker_width(img, line, 6.0, fwhm_fallback=True)
+    assert not by_edges and 21.0 < w < 27.0                  # 24 px in the middle

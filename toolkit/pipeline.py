@@ -28,7 +28,7 @@ from .orientation import sideways_score
 from .geometry import Perception, measure_from_perception
 from .result import MeasureResult, PointCloud
 from .rope.geometry import instance_in_window
-from .rope.select import Refusal, RopeChoice, select_rope
+from .rope.select import Refusal, RopeChoice, RopeSource, select_rope
 
 __all__ = ["Session", "MeasureConfig", "measure_photo", "reconstruct_photo", "rope_band_mask"]
 
@@ -216,7 +216,8 @@ def _measure_frame(path, rgb, camera, req: _Request, sess: Session, tm: dict, fr
     from .rope.ruler import rope_ruler
     ruler = rope_ruler(rgb, camera, frame, choice.rope, is_line=choice.source.is_line,
                        diameter_known=bool(req.rope_diameter_m),
-                       full_resolution=sess.config.rope_full_resolution, edges=sess.config.marker_edges, timings=tm)
+                       full_resolution=sess.config.rope_full_resolution, edges=sess.config.marker_edges,
+                       finder_band=choice.source is RopeSource.FINDER, timings=tm)
     silhouette = _TreeSilhouette(sess.trees, frame, stem.tree_mask, tm)
     perc = _perception(frame, choice, stem, ruler, seg.semantic == 1, depth_job, silhouette, sess, req)
     res = measure_from_perception(perc, str(path), timings=tm, config=sess.config.geometry)

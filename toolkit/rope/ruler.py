@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["RopeRuler", "rope_ruler", "rope_at_full_resolution"]
+__all__ = ["RopeRuler", "rope_ruler", "rope_at_full_resolution", "wide_marker_width"]
 
 
 @dataclass
@@ -40,7 +40,8 @@ class RopeRuler:
 
 
 def rope_ruler(rgb: np.ndarray, camera, frame, rope, *, is_line: bool, diameter_known: bool,
-               full_resolution: bool = True, edges: bool = True, timings: dict | None = None) -> RopeRuler:
+               full_resolution: bool = True, edges: bool = True, finder_band: bool = False,
+               timings: dict | None = None) -> RopeRuler:
     """Read the rope's thickness (and, with a known diameter, how clearly it stands out).
 
     Parameters
@@ -48,7 +49,10 @@ def rope_ruler(rgb: np.ndarray, camera, frame, rope, *, is_line: bool, diameter_
     rgb : (H, W, 3) uint8 photo; camera : its :class:`~monodbh.calib.Camera`.
     frame : :class:`~monodbh.toolkit.frames.WorkFrame` of the photo.
     rope : :class:`~.rope.RopeDetection` in working-image pixels.
-    is_line : the band detector saw the rope as a line (else it is no ruler).
+    is_line : the band detector saw the rope as a line (else it is no ruler, unless ``finder_band``).
+    finder_band : the rope finder's band (no thickness of its own, e.g. a strap wider than the
+        band detector sees): with a known width and ``edges``, it is read edge to edge as a wide
+        marker (:func:`wide_marker_width`); where that does not hold, it is no ruler.
     diameter_known : the user gave the rope's diameter (``--rope-mm``).
     full_resolution : read it again on the full-resolution photo where that is larger.
     edges : read the thickness edge to edge (:func:`~.marker_edges.marker_thickness`) where it
@@ -60,6 +64,8 @@ def rope_ruler(rgb: np.ndarray, camera, frame, rope, *, is_line: bool, diameter_
     :class:`RopeRuler`.
     """
     if not is_line:
+        if finder_band and diameter_known and edges:
+            return _finder_ruler(rgb, camera, frame, rope, full_resolution, timings)
         return RopeRuler()
     T = float(rope.thickness_px)
     if not diameter_known:
@@ -96,6 +102,46 @@ EDGE_VS_DETECTOR = (0.85, 1.32)
 EDGE_VS_WIDE_FWHM = (0.85, 1.15)
 
 
+def wide_marker_width(img: np.ndarray, polyline, thickness_px: float, *, iterations: int = 3,
+                      fwhm_fallback: bool = False) -> tuple[float, bool] | None:
+    """A wide marker's thickness from a rough one.
+
+    The half-maximum width of the band's mean red-ness profile (:func:`~.profile.rope_profile_fwhm`)
+    is read again in a window sized by itself while it grows by :data:`EDGE_VS_DETECTOR`'s upper
+    end or more (at most ``iterations`` times); the edges (:func:`~.marker_edges.marker_thickness`)
+    are then read in a window sized by it and kept where they are determined to
+    :data:`EDGE_MAX_REL_SIGMA` and agree with it within :data:`EDGE_VS_WIDE_FWHM`. With
+    ``fwhm_fallback``, where they are not, the half-maximum width itself is returned.
+
+    Parameters
+    ----------
+    img : (H, W, 3) uint8 image; polyline : (N, 2) the band's centre line in its pixels.
+    thickness_px : rough thickness (pixels).
+
+    Returns
+    -------
+    ``(thickness px, edges)`` (``edges``: read edge to edge, else the half-maximum width), or None.
+    """
+    from .marker_edges import marker_thickness
+    from .profile import rope_profile_fwhm
+
+    P = np.asarray(polyline, np.float64)
+    T = max(float(thickness_px), 1.0)
+    fwhm = rope_profile_fwhm(img, P, T)[0]
+    for _ in range(iterations):
+        if not (np.isfinite(fwhm) and fwhm >= EDGE_VS_DETECTOR[1] * T):
+            break
+        T = fwhm
+        fwhm = rope_profile_fwhm(img, P, T)[0]
+    if not (np.isfinite(fwhm) and fwhm > 1.0):
+        return None
+    m = marker_thickness(img, P, fwhm)
+    lo, hi = EDGE_VS_WIDE_FWHM
+    if m is not None and m.sigma_px < EDGE_MAX_REL_SIGMA * m.width_px and lo < m.width_px / fwhm < hi:
+        return float(m.width_px), True
+    return (float(fwhm), False) if fwhm_fallback else None
+
+
 def _edge_width(img: np.ndarray, polyline, thickness_px: float) -> float | None:
     """The marker's edge-to-edge thickness (:func:`~.marker_edges.marker_thickness`) where it is
     determined to :data:`EDGE_MAX_REL_SIGMA` and agrees with the detector's ``thickness_px``
@@ -116,11 +162,52 @@ def _edge_width(img: np.ndarray, polyline, thickness_px: float) -> float | None:
     fwhm = rope_profile_fwhm(img, P, T)[0]
     if not (np.isfinite(fwhm) and fwhm / T >= hi):
         return None
-    m = marker_thickness(img, P, fwhm)
-    lo, hi = EDGE_VS_WIDE_FWHM
-    if m is None or not (m.sigma_px < EDGE_MAX_REL_SIGMA * m.width_px and lo < m.width_px / fwhm < hi):
+    wide = wide_marker_width(img, P, fwhm, iterations=0)
+    return None if wide is None else wide[0]
+
+
+def _full_res_band(rgb: np.ndarray, camera, frame, rope):
+    """``(crop, polyline in it, thickness)``: the band of ``rope`` (working-image pixels) on the
+    undistorted full-resolution photo, with rows above and below and part of the background
+    beside it; None when the photo is no larger than the working image."""
+    sx, sy = frame.scale
+    if max(sx, sy) > 0.95 or not rope or rope.polyline is None or len(rope.polyline) < 2:
         return None
-    return float(m.width_px)
+    P = (np.asarray(rope.polyline, np.float64) + 0.5) / (sx, sy) - 0.5
+    T = float(rope.thickness_px) / sx
+    L = float(np.linalg.norm(P[-1] - P[0]))
+    mx, my = 0.35 * L + 4 * T + 8, max(10 * T, 0.25 * L, 24.0)
+    box = tuple(int(round(v)) for v in (P[:, 0].min() - mx, P[:, 1].min() - my,
+                                        P[:, 0].max() + mx, P[:, 1].max() + my))
+    crop = frame.full_res_crop(rgb, camera, box)
+    return crop, P - (box[0], box[1]), T, box
+
+
+def _finder_ruler(rgb: np.ndarray, camera, frame, rope, full_resolution: bool, timings: dict | None) -> RopeRuler:
+    """The rope finder's band read as a wide marker (:func:`wide_marker_width`, its half-maximum
+    width where the edges do not hold), on the full-resolution photo where it is larger; an empty
+    :class:`RopeRuler` where neither holds."""
+    from .profile import rope_profile_fwhm
+
+    t = time.perf_counter()
+    out = RopeRuler()
+    full = _full_res_band(rgb, camera, frame, rope) if full_resolution else None
+    if full is not None:
+        img, P, T, _ = full
+        scale, flags = float(frame.scale[0]), ["rope_read_at_full_resolution"]
+    elif rope and rope.polyline is not None and len(rope.polyline) >= 2:
+        img, P, T = frame.image, np.asarray(rope.polyline, np.float64), float(rope.thickness_px)
+        scale, flags = 1.0, []
+    else:
+        return out
+    wide = wide_marker_width(img, P, T, fwhm_fallback=True)
+    if wide is not None:
+        w, by_edges = wide
+        out = RopeRuler(w * scale, w, float(rope_profile_fwhm(img, P, w)[1]), by_edges,
+                        flags + (["marker_read_by_edges"] if by_edges else []))
+    if timings is not None:
+        timings["rope_ruler"] = 1000 * (time.perf_counter() - t)
+    return out
 
 
 def rope_at_full_resolution(rgb: np.ndarray, camera, frame, rope, *, edges: bool = True) -> dict | None:
@@ -148,16 +235,12 @@ def rope_at_full_resolution(rgb: np.ndarray, camera, frame, rope, *, edges: bool
     from .band import detect_rope
     from .profile import rope_profile_fwhm
 
-    sx, sy = frame.scale
-    if max(sx, sy) > 0.95 or not rope or rope.polyline is None or len(rope.polyline) < 2:
+    full = _full_res_band(rgb, camera, frame, rope)
+    if full is None:
         return None
-    P = (np.asarray(rope.polyline, np.float64) + 0.5) / (sx, sy) - 0.5
-    T = float(rope.thickness_px) / sx
+    crop, P, T, box = full
+    sx, sy = frame.scale
     L = float(np.linalg.norm(P[-1] - P[0]))
-    mx, my = 0.35 * L + 4 * T + 8, max(10 * T, 0.25 * L, 24.0)
-    box = tuple(int(round(v)) for v in (P[:, 0].min() - mx, P[:, 1].min() - my,
-                                        P[:, 0].max() + mx, P[:, 1].max() + my))
-    crop = frame.full_res_crop(rgb, camera, box)
     c = (np.asarray(rope.center_xy, np.float64) + 0.5) / (sx, sy) - 0.5 - (box[0], box[1])
     det = detect_rope(crop, None, pick_xy=(float(c[0]), float(c[1])), min_score=-np.inf)
     if not det or np.hypot(*(np.asarray(det.center_xy) - c)) > max(3 * T, 0.15 * L) + 4:
