@@ -37,8 +37,11 @@ class StemBase:
         stem or edges to confirm a tracked base: not looked for), "tracked" (the edge tracker
         ended on what looks like the ground: a bound, not a base, unless
         :attr:`~.config.StemBaseConfig.tracked_base_sets_scale`), or the edge tracker's status
-        ("ground" with that option, "occluded", "off_mask", "edge", "lost").
-    track_info : the edge tracker's ``info`` when it ran (:func:`~.stem_track.track_stem_base`).
+        ("ground" with that option, "occluded", "off_mask", "edge", "lost"); "occluded" also
+        where the network's base lies above the segmented stem's end (something in front of
+        the stem: flag ``stem_base_above_visible_stem``).
+    track_info : the edge tracker's ``info`` when it ran (:func:`~.stem_track.track_stem_base`);
+        for a refused network base ``{"end_xy": the segmented stem's lowest point, "network_xy"}``.
     """
     xy: np.ndarray | None
     status: str

@@ -1,7 +1,8 @@
 """The rope as a ruler: its thickness across the band, read where the photo has the most pixels.
 
 Lives here: :func:`rope_ruler` (the thickness and contrast the geometry's ``rope_diameter`` scale
-source needs) and :func:`rope_at_full_resolution`. Imported by :mod:`monodbh.toolkit.pipeline`;
+source needs), :func:`rope_at_full_resolution` and :func:`wide_marker_width` (a strap wider
+than the band detector reads). Imported by :mod:`monodbh.toolkit.pipeline`;
 imports the band detector, the rope profile and the marker's edge reader (:mod:`.marker_edges`)
 of this package (a :class:`~monodbh.toolkit.frames.WorkFrame` is passed in).
 """
@@ -51,8 +52,9 @@ def rope_ruler(rgb: np.ndarray, camera, frame, rope, *, is_line: bool, diameter_
     rope : :class:`~.rope.RopeDetection` in working-image pixels.
     is_line : the band detector saw the rope as a line (else it is no ruler, unless ``finder_band``).
     finder_band : the rope finder's band (no thickness of its own, e.g. a strap wider than the
-        band detector sees): with a known width and ``edges``, it is read edge to edge as a wide
-        marker (:func:`wide_marker_width`); where that does not hold, it is no ruler.
+        band detector sees): with a known width and ``edges``, it is read as a wide marker
+        (:func:`wide_marker_width`: edge to edge, else its mean profile's half-maximum width);
+        where neither holds, it is no ruler.
     diameter_known : the user gave the rope's diameter (``--rope-mm``).
     full_resolution : read it again on the full-resolution photo where that is larger.
     edges : read the thickness edge to edge (:func:`~.marker_edges.marker_thickness`) where it
@@ -167,9 +169,10 @@ def _edge_width(img: np.ndarray, polyline, thickness_px: float) -> float | None:
 
 
 def _full_res_band(rgb: np.ndarray, camera, frame, rope):
-    """``(crop, polyline in it, thickness)``: the band of ``rope`` (working-image pixels) on the
-    undistorted full-resolution photo, with rows above and below and part of the background
-    beside it; None when the photo is no larger than the working image."""
+    """``(crop (h, w, 3), polyline in it (N, 2), thickness px, box (x0, y0, x1, y1))``: the band
+    of ``rope`` (working-image pixels) on the undistorted full-resolution photo, with rows above
+    and below and part of the background beside it; None when the photo is no larger than the
+    working image."""
     sx, sy = frame.scale
     if max(sx, sy) > 0.95 or not rope or rope.polyline is None or len(rope.polyline) < 2:
         return None
