@@ -141,6 +141,10 @@ def test_a_network_base_above_the_segmented_stem_is_a_bush_in_front_not_the_foot
     holes = tree.copy()
     holes[400:404] = False
     assert find(390.0, holes)[0].status == "occluded"
+    # a gap longer than half a stem width ends it: the mask below is not this stem's run
+    cut = tree.copy()
+    cut[392:420] = False
+    assert find(390.0, cut)[0].status == "network"
     # the foot itself, or a base within the allowed overrun, stays a base
     assert find(449.0)[0].status == "network"
     assert find(430.0)[0].status == "network"                            # 0.15 of the span above the mask's end
