@@ -29,8 +29,8 @@ from .stem_base import StemBase, base_metrology
 from .up import StemAxis
 
 __all__ = ["NETWORK_SCALE_SOURCES", "SOURCE_ORDER", "ScaleChoice", "scale_candidates", "candidate_stem_base",
-           "candidate_rope_diameter", "rope_ruler_sigma", "candidate_pose", "axis_distance_from_depth", "candidate_ground_plane",
-           "candidate_camera_height", "candidate_depth", "combine_candidates", "calibrate_distance",
+           "candidate_rope_diameter", "rope_ruler_sigma", "candidate_pose", "axis_distance_from_depth",
+           "candidate_ground_plane", "candidate_camera_height", "candidate_depth", "combine_candidates", "calibrate_distance",
            "capped_by_visible_stem", "choose_scale"]
 
 #: the scale sources that come from the depth network (their distances get the error model's

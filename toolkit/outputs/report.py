@@ -57,7 +57,8 @@ FLAG_TEXT = {
     "stem_base_occluded": "the stem's foot is hidden (bushes, another trunk)",
     "stem_base_edge": "the stem's foot is outside the photo",
     "stem_base_tracked": "the stem's foot was not recognised (its edges were followed down, which only bounds the distance)",
-    "stem_base_above_visible_stem": "what looked like the stem's foot is in front of it (the stem is seen lower): it only bounds the distance",
+    "stem_base_above_visible_stem": ("what looked like the stem's foot is in front of it (the stem is seen lower): "
+                                     "it only bounds the distance"),
     "stem_base_lost": "the stem's edges could not be followed down to the foot",
     "stem_base_off_mask": "the stem's edges ran off the segmented trunk before the foot",
     "stem_base_unconfirmed": "no stem foot was looked for (stem edges not confirmed)",

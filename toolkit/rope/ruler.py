@@ -81,8 +81,8 @@ def rope_ruler(rgb: np.ndarray, camera, frame, rope, *, is_line: bool, diameter_
                         full["edges"], ["rope_read_at_full_resolution"])
     else:
         from .profile import rope_profile_fwhm
-        contrast = rope_profile_fwhm(frame.image, rope.polyline, rope.thickness_px)[1]
-        m = _edge_width(frame.image, rope.polyline, T) if edges else None
+        fwhm, contrast = rope_profile_fwhm(frame.image, rope.polyline, rope.thickness_px)
+        m = _edge_width(frame.image, rope.polyline, T, fwhm_px=fwhm) if edges else None
         out = RopeRuler(T, T, contrast) if m is None else RopeRuler(m, m, contrast, True)
     if out.edges:
         out.flags.append("marker_read_by_edges")
@@ -144,14 +144,15 @@ def wide_marker_width(img: np.ndarray, polyline, thickness_px: float, *, iterati
     return (float(fwhm), False) if fwhm_fallback else None
 
 
-def _edge_width(img: np.ndarray, polyline, thickness_px: float) -> float | None:
+def _edge_width(img: np.ndarray, polyline, thickness_px: float, fwhm_px: float | None = None) -> float | None:
     """The marker's edge-to-edge thickness (:func:`~.marker_edges.marker_thickness`) where it is
     determined to :data:`EDGE_MAX_REL_SIGMA` and agrees with the detector's ``thickness_px``
     within :data:`EDGE_VS_DETECTOR`, else None.
 
     The band detector can read a wide strap as a stripe of it. Where the half-maximum width of
     the band's mean profile is beyond that agreement, the edges are read again in a window sized
-    by it and kept where they agree with it within :data:`EDGE_VS_WIDE_FWHM`."""
+    by it and kept where they agree with it within :data:`EDGE_VS_WIDE_FWHM`. ``fwhm_px``: that
+    half-maximum width where the caller has read it already (read here otherwise)."""
     from .marker_edges import marker_thickness
     from .profile import rope_profile_fwhm
 
@@ -161,7 +162,7 @@ def _edge_width(img: np.ndarray, polyline, thickness_px: float) -> float | None:
     m = marker_thickness(img, P, T)
     if m is not None and m.sigma_px < EDGE_MAX_REL_SIGMA * m.width_px and lo < m.width_px / T < hi:
         return float(m.width_px)
-    fwhm = rope_profile_fwhm(img, P, T)[0]
+    fwhm = rope_profile_fwhm(img, P, T)[0] if fwhm_px is None else float(fwhm_px)
     if not (np.isfinite(fwhm) and fwhm / T >= hi):
         return None
     wide = wide_marker_width(img, P, fwhm, iterations=0)
@@ -232,8 +233,8 @@ def rope_at_full_resolution(rgb: np.ndarray, camera, frame, rope, *, edges: bool
     Returns
     -------
     ``{"thickness_px", "contrast", "scale", "edges"}`` with ``scale`` the working / full-resolution
-    pixel ratio and ``edges`` whether the thickness was read edge to edge; None when the photo is no larger than the working image or the band is not found
-    again at the same place.
+    pixel ratio and ``edges`` whether the thickness was read edge to edge; None when the photo is
+    no larger than the working image or the band is not found again at the same place.
     """
     from .band import detect_rope
     from .profile import rope_profile_fwhm
@@ -250,7 +251,7 @@ def rope_at_full_resolution(rgb: np.ndarray, camera, frame, rope, *, edges: bool
         return None
     if not 0.4 < det.thickness_px / max(T, 1e-6) < 2.5:
         return None
-    contrast = rope_profile_fwhm(crop, det.polyline, det.thickness_px)[1]
-    m = _edge_width(crop, det.polyline, det.thickness_px) if edges else None
+    fwhm, contrast = rope_profile_fwhm(crop, det.polyline, det.thickness_px)
+    m = _edge_width(crop, det.polyline, det.thickness_px, fwhm_px=fwhm) if edges else None
     return {"thickness_px": float(det.thickness_px if m is None else m), "contrast": float(contrast),
             "scale": float(sx), "edges": m is not None}
