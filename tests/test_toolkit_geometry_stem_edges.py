@@ -1,4 +1,6 @@
 """The edge pair checked against the rope band (toolkit.geometry.stem_edges)."""
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -31,6 +33,28 @@ def test_rope_seen_on_part_of_the_stem_keeps_the_mask_edge():
     e, n = edges_checked_by_rope(gray, perc, e1)
     assert n == 0
     assert abs(e.right_xy[0] - 259.5) < 1.0
+
+
+def test_mask_edge_inside_the_roped_stem_is_moved_to_the_rope_end():
+    # the coarse mask stops at a bark-tone edge inside the stem (x 215) while the rope runs on
+    # to the stem's silhouette (x 200): that side's edge is the rope's end
+    rgb, mask = roped_pair(rope_to=260)
+    rgb[:, 200:215] = (rgb[:, 200:215] * 0.6).astype(np.uint8)
+    rgb[198:203, 200:215] = (170, 30, 25)
+    mask[:] = False
+    mask[:, 214:262] = True
+    perc = rope_perception(rgb, mask, 201, 259)
+    gray = rgb.astype(np.float32).mean(2)
+    e1 = edges_two_pass(gray, mask, perc)
+    assert e1 and abs(e1.left_xy[0] - 214.5) < 1.5     # the mask-guided edge is the bark's
+    e, n = edges_checked_by_rope(gray, perc, e1)
+    assert n == 1
+    assert abs(e.left_xy[0] - 199.5) < 1.0 and abs(e.right_xy[0] - 259.5) < 1.0
+    # a rope that fades where the mask stops is no evidence: the mask's edge stays
+    rgb2 = rgb.copy()
+    rgb2[198:203, 200:215] = rgb[190:195, 200:215]
+    e, n = edges_checked_by_rope(rgb2.astype(np.float32).mean(2), dataclasses.replace(perc, rgb=rgb2), e1)
+    assert n == 0 and abs(e.left_xy[0] - 214.5) < 1.5
 
 
 def test_the_rope_check_thresholds_come_from_the_config():

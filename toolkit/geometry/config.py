@@ -42,6 +42,10 @@ class StemEdgesConfig:
     #: the check applies only where the rope's red-ness contrast across the stem is above this
     #: (stem-edges-rope-check.md)
     rope_gap_min_contrast: float = 0.02
+    #: where the rope band runs on beyond a side's mask edge (by the same margin) and its row
+    #: there is at least this fraction as red as across the stem, the mask edge lies inside the
+    #: stem and that side's edge is taken at the rope's end (stem-edges-rope-check.md)
+    rope_overrun_min_ratio: float = 0.5
     #: edges wider than this factor times the rope band's length are flagged
     #: ``width_disagrees_rope`` and the gap enters the DBH sigma (stem-edges-rope-check.md)
     width_rope_ratio_max: float = 1.3

@@ -90,16 +90,22 @@ def edges_checked_by_rope(gray: np.ndarray, perc: Perception, edges: TrunkEdges,
     w3 = sR3 - sL3
     gap_min = max(cfg.rope_gap_min_px, cfg.rope_gap_min_fraction * w3)
     gaps = {"left": sL3 - sL1, "right": sR1 - sR3}
-    if w3 <= 4 or max(gaps.values()) <= gap_min:
+    if w3 <= 4 or max(abs(g) for g in gaps.values()) <= gap_min:
         return edges, 0
-    contrast = _rope_contrast_fn(perc, gray.shape, edges, max(abs(sL1), abs(sR1)), w3)
+    contrast = _rope_contrast_fn(perc, gray.shape, edges, max(abs(sL1), abs(sR1), abs(sL3), abs(sR3)), w3)
     c_in = contrast(sL3 + 0.15 * w3, sR3 - 0.15 * w3)
     if not c_in > cfg.rope_gap_min_contrast:
         return edges, 0
     left, right, n = edges, edges, 0
+    # the mask runs on past the rope's end with no rope there: a merged neighbour
     if gaps["left"] > gap_min and contrast(sL1 + 1, sL3 - 1) < cfg.rope_gap_max_ratio * c_in:
         left, n = e3, n + 1
     if gaps["right"] > gap_min and contrast(sR3 + 1, sR1 - 1) < cfg.rope_gap_max_ratio * c_in:
+        right, n = e3, n + 1
+    # the rope runs on past the mask's edge: the mask edge lies inside the stem
+    if -gaps["left"] > gap_min and contrast(sL3 + 1, sL1 - 1) >= cfg.rope_overrun_min_ratio * c_in:
+        left, n = e3, n + 1
+    if -gaps["right"] > gap_min and contrast(sR1 + 1, sR3 - 1) >= cfg.rope_overrun_min_ratio * c_in:
         right, n = e3, n + 1
     if n == 0:
         return edges, 0
