@@ -4,7 +4,8 @@ Everything here needs ground truth (``dbh synth`` folders) or measures the libra
 ``dbh eval`` (:mod:`.synth_eval`) and ``dbh bench`` (:mod:`.speed_bench`), ground-truth
 perception (:mod:`.ground_truth`), simulated user taps (:mod:`.taps`), the sample records
 (:mod:`.synth_samples`), the depth network's scores (:mod:`.depth_eval`), the rope benchmarks
-(:mod:`.rope_bench`, :mod:`.real_rope_bench`), the error model (:mod:`.error_model`) and the
+(:mod:`.rope_bench`, :mod:`.real_rope_bench`), the real photos' outlines (:mod:`.real_trunk_bench`,
+:mod:`.real_width_bench`), the error model (:mod:`.error_model`) and the
 weight fitters (:mod:`.fit_rope_stem`, :mod:`.fit_rope_finder`).
 
 Imported by ``monodbh.cli`` and by these tools themselves; never by the measuring library
