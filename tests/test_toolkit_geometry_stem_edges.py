@@ -74,24 +74,3 @@ def test_the_rope_check_thresholds_come_from_the_config():
     assert flags == ["edge_at_rope_end", "width_disagrees_rope"]
     assert width_vs_rope == pytest.approx(abs(np.log(edges.width_px / 58.0)))
 
-
-def test_wide_marker_band_overshooting_its_red_is_cut_to_the_red_run():
-    # a 16 px strap across the roped stem (x 200..260); the band's centre line runs on 15 px
-    # past the strap's right end, over the merged neighbour: the band is cut to the strap's red
-    # run, so the right edge is the roped stem's
-    from monodbh.toolkit.geometry import Perception, StemEdgesConfig
-    rgb, mask = roped_pair(rope_to=200)
-    rgb[192:209, 200:260] = (170, 30, 25)
-    band = np.zeros(mask.shape, bool)
-    band[200 - 85:200 + 86, 190:275] = True
-    perc = Perception(rgb=rgb, camera=None, rope_xy=np.array([232.0, 200.0]), rope_dir=np.array([1.0, 0.0]),
-                      rope_half_px=8.0, tree_mask=mask, ground_mask=np.zeros_like(mask), edge_search_px=6.0,
-                      rope_band_mask=band, rope_length_px=85.0)
-    gray = rgb.astype(np.float32).mean(2)
-    e1 = edges_two_pass(gray, mask, perc)
-    assert e1 and e1.right_xy[0] > 320
-    e, n = edges_checked_by_rope(gray, perc, e1)
-    assert n >= 1 and abs(e.right_xy[0] - 259.5) < 1.5 and abs(e.left_xy[0] - 199.5) < 1.5
-    # not for thin markers (their red fades in shade): the band as found
-    e, n = edges_checked_by_rope(gray, perc, e1, StemEdgesConfig(rope_red_end_min_half_px=9.0))
-    assert not abs(e.right_xy[0] - 259.5) < 1.5

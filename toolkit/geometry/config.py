@@ -49,13 +49,6 @@ class StemEdgesConfig:
     #: ... when the band runs on past the mask edge by more than the rope's half thickness plus
     #: this many pixels (and the ``rope_gap_min_*`` margin) (stem-edges-rope-check.md)
     rope_overrun_extra_px: float = 1.5
-    #: for markers at least this thick (half thickness, pixels), the rope band's ends are read
-    #: again from the red-ness of the rope's row (where it stays above ``rope_red_end_ratio`` of its
-    #: contrast across the stem), not from the band's centre line, which a wide marker's blur can
-    #: carry past its ends (stem-edges-rope-check.md)
-    rope_red_end_min_half_px: float = 2.5
-    #: ... and whose row stands out at least this much across the stem (red-ness contrast)
-    rope_red_end_min_contrast: float = 0.1
     #: ... the fraction of the rope's contrast that ends its red run
     rope_red_end_ratio: float = 0.5
     #: edges wider than this factor times the rope band's length are flagged

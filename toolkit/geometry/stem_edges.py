@@ -59,42 +59,6 @@ def _rope_contrast_fn(perc: Perception, gray_shape: tuple[int, int], edges: Trun
     return contrast
 
 
-def _red_ends(contrast, c_in: float, sL: float, sR: float, ratio: float, gap_px: float) -> tuple[float, float]:
-    """``(left, right)``: where the rope's red run around the rope centre ends on each side
-    (positions across the stem, pixels), read in 2 px windows up to 1.5x beyond ``sL`` and
-    ``sR``; the run goes on over gaps up to ``gap_px`` where the window's contrast is below
-    ``ratio * c_in``."""
-    ends = []
-    for sign, reach in ((-1.0, 1.5 * abs(sL) + 2.0), (1.0, 1.5 * abs(sR) + 2.0)):
-        last, s = 0.0, 0.0
-        while abs(s) < reach and abs(s - last) <= gap_px:
-            s += sign
-            if contrast(min(s, s + 2 * sign), max(s, s + 2 * sign)) >= ratio * c_in:
-                last = s + sign
-        ends.append(last)
-    return ends[0], ends[1]
-
-
-def _band_cut_to_red(gray, perc: Perception, e3: TrunkEdges, contrast, c_in: float, sL3: float, sR3: float,
-                     cfg: StemEdgesConfig, edge_config) -> TrunkEdges:
-    """The band-guided edges searched again with the rope band cut to the rope's red run where
-    the band runs on past it (a wide marker's centre line, fitted on blurred red-ness, overshoots
-    its ends); ``e3`` unchanged otherwise."""
-    h = float(perc.rope_half_px)
-    lo, hi = _red_ends(contrast, c_in, sL3, sR3, cfg.rope_red_end_ratio, gap_px=max(2.0, h))
-    margin = max(cfg.rope_gap_min_px, cfg.rope_gap_min_fraction * (sR3 - sL3))
-    if not (lo > sL3 + margin or hi < sR3 - margin) or hi - lo <= 4:
-        return e3
-    H, W = gray.shape
-    ys, xs = np.nonzero(perc.rope_band_mask)
-    s = (xs - perc.rope_xy[0]) * e3.across[0] + (ys - perc.rope_xy[1]) * e3.across[1]
-    keep = (s >= lo) & (s <= hi)
-    band = np.zeros((H, W), bool)
-    band[ys[keep], xs[keep]] = True
-    e = edges_two_pass(gray, band, perc, cfg, edge_config)
-    return e if e else e3
-
-
 def edges_checked_by_rope(gray: np.ndarray, perc: Perception, edges: TrunkEdges,
                           config: StemEdgesConfig | None = None,
                           edge_config: EdgeConfig | None = None) -> tuple[TrunkEdges, int]:
@@ -104,6 +68,9 @@ def edges_checked_by_rope(gray: np.ndarray, perc: Perception, edges: TrunkEdges,
     the rope band and the rope's row there is no redder than the rows beside it, the mask has
     taken in a neighbouring trunk (or background) and that side's edge is searched at the rope's
     end instead. Where the rope goes on (faintly, e.g. in the stem's shade), the mask's edge stays.
+    Where the rope band runs on past the mask's edge by more than its half thickness plus
+    ``config.rope_overrun_extra_px``, and is red there, the mask's edge lies inside the stem (bark
+    texture, a shadow) and that side's edge is searched at the rope's end too.
 
     Parameters
     ----------
@@ -124,20 +91,13 @@ def edges_checked_by_rope(gray: np.ndarray, perc: Perception, edges: TrunkEdges,
     sL1, sR1 = float((edges.left_xy - c) @ u), float((edges.right_xy - c) @ u)
     sL3, sR3 = float((e3.left_xy - c) @ u), float((e3.right_xy - c) @ u)
     w3 = sR3 - sL3
-    if w3 <= 4:
+    gap_min = max(cfg.rope_gap_min_px, cfg.rope_gap_min_fraction * w3)
+    gaps = {"left": sL3 - sL1, "right": sR1 - sR3}
+    if w3 <= 4 or max(abs(g) for g in gaps.values()) <= gap_min:
         return edges, 0
     contrast = _rope_contrast_fn(perc, gray.shape, edges, max(abs(sL1), abs(sR1), abs(sL3), abs(sR3)), w3)
     c_in = contrast(sL3 + 0.15 * w3, sR3 - 0.15 * w3)
     if not c_in > cfg.rope_gap_min_contrast:
-        return edges, 0
-    if perc.rope_half_px >= cfg.rope_red_end_min_half_px and c_in >= cfg.rope_red_end_min_contrast:
-        # a thick, clearly red marker's red run is read reliably: its ends bound the band
-        e3 = _band_cut_to_red(gray, perc, e3, contrast, c_in, sL3, sR3, cfg, edge_config)
-        sL3, sR3 = float((e3.left_xy - c) @ u), float((e3.right_xy - c) @ u)
-        w3 = sR3 - sL3
-    gap_min = max(cfg.rope_gap_min_px, cfg.rope_gap_min_fraction * w3)
-    gaps = {"left": sL3 - sL1, "right": sR1 - sR3}
-    if max(abs(g) for g in gaps.values()) <= gap_min:
         return edges, 0
     left, right, n = edges, edges, 0
     # the mask runs on past the rope's end with no rope there: a merged neighbour
