@@ -333,3 +333,50 @@ def test_detections_and_candidates_are_frozen_and_repeatable():
     assert a.score == b.score and np.array_equal(a.mask, b.mask)
     for c, d in zip(a.candidates, b.candidates):
         assert c.features == d.features and c.score == d.score and np.array_equal(c.polyline, d.polyline)
+
+
+def test_a_strap_too_wide_for_three_pyramid_levels_is_found_on_the_fourth(no_rope):
+    # the trunk at 1600 px (2.5x): a 36 px strap across it is 4.5 px thick only on the fourth
+    # level; its centre line stays in the strap's middle (a straight line where the thin-line
+    # filter sees only the strap's ends)
+    from dataclasses import replace
+    from monodbh.toolkit.rope.config import BandConfig
+    big = cv2.resize(no_rope["rgb"], (1600, 1200), interpolation=cv2.INTER_CUBIC)
+    l, r = _trunk_cols(no_rope, 1, 300)
+    img, (cx, cy) = _draw_rope(big, int(2.5 * l), int(2.5 * r + 2), 750, 36, sag=0.05)
+    img = _jpeg(img)
+    det = detect_rope(img)
+    assert det, det.reason
+    assert abs(det.center_xy[0] - cx) <= 4 and abs(det.center_xy[1] - cy) <= 3
+    assert not detect_rope(img, config=replace(BandConfig(), pyramid_levels=3))
+
+
+def test_a_wide_strap_round_a_thin_stem_is_kept_when_the_marker_is_wide(no_rope):
+    # a 20 px strap round a 72 px trunk is under 5 times as long as thick: a blob to the band
+    # detector's default, a band for the cascade when the user's marker is wider than a rope
+    from monodbh.toolkit.rope.select import RopeSource, select_rope
+    l, r = _trunk_cols(no_rope, 1, 300)
+    img, (cx, cy) = _draw_rope(no_rope["rgb"], l, r, 300, 20, sag=0.05)
+    img = _jpeg(img)
+    assert not detect_rope(img)
+    inst = no_rope["instance"]
+    plain = select_rope(img, lambda: inst, cell=2.5)
+    assert not plain
+    wide = select_rope(img, lambda: inst, cell=2.5, marker_width_mm=40.0)
+    assert wide and wide.source is RopeSource.BAND
+    assert abs(wide.rope.center_xy[0] - cx) <= 6 and abs(wide.rope.center_xy[1] - cy) <= 3
+
+
+def test_a_strap_like_band_off_every_trunk_is_refused_for_a_wide_marker(no_rope):
+    # the rope finder does not check straps: a wide red band on the ground (red leaves, a cloth)
+    # must lie across a segmented trunk to be the declared strap
+    from monodbh.toolkit.rope.select import Refusal, select_rope
+    inst = no_rope["instance"].copy()
+    inst[400:480, 20:140] = 0                       # where the segmenter sees no trunk
+    img, _ = _draw_rope(no_rope["rgb"], 40, 110, 440, 16, sag=0.05)
+    img = _jpeg(img)
+    choice = select_rope(img, lambda: inst, cell=2.5, marker_width_mm=40.0)
+    assert not choice and choice.refusal is Refusal.WEAK_OFF_TRUNK
+    # the same band across a trunk is the strap
+    inst[400:480, 30:120] = 1
+    assert select_rope(img, lambda: inst, cell=2.5, marker_width_mm=40.0)

@@ -38,3 +38,31 @@ def test_a_tree_mask_centres_on_the_trunk():
     mask[:, 90:171] = True                                       # the trunk as segmented: x 90-170
     ref = refine_band(_photo(), _candidate(), mask)
     assert abs(ref.center_xy[0] - 130.0) < 1e-9
+
+
+
+def test_a_centre_line_through_the_band_ends_only_is_straight():
+    # a wide strap read with too thin a line filter: band pixels only in the 12 columns at each
+    # end, each run tilted; a quadratic through them would bow far out of the strap
+    from monodbh.toolkit.rope.band_refine import _fit_centre_line
+    H, W = 120, 200
+    xs = np.arange(W, dtype=np.float32)
+    yy = np.arange(H, dtype=np.float32)[:, None]
+    m = np.zeros((H, W), bool)
+    R = np.zeros((H, W), np.float32)
+    for x in list(range(0, 12)) + list(range(188, 200)):
+        y = 60 + (0.6 * x if x < 100 else 0.6 * (199 - x))       # the ends tilt towards each other
+        m[int(y) - 2:int(y) + 3, x] = True
+        R[int(y) - 2:int(y) + 3, x] = 1.0
+    cols = np.flatnonzero(m.any(0))
+    coef, _, poly = _fit_centre_line(R, m, cols, xs, yy, 20.0)
+    assert len(coef) == 2                                        # a line, not a bowed quadratic
+    assert abs(np.polyval(coef, 100.0) - 63.0) < 3.0
+    # the same columns spread over the band: the quadratic is kept (a rope's arc)
+    cols2 = np.arange(0, 200, 1)
+    m2 = np.zeros((H, W), bool)
+    for x in cols2:
+        y = 60 + 10 * np.sqrt(max(0.0, 1 - ((x - 100) / 100.0) ** 2))
+        m2[int(round(y)) - 1:int(round(y)) + 2, x] = True
+    coef2, _, _ = _fit_centre_line(m2.astype(np.float32), m2, np.flatnonzero(m2.any(0)), xs, yy, 3.0)
+    assert len(coef2) == 3

@@ -149,7 +149,7 @@ def _line_maps(small: np.ndarray, cfg: BandConfig):
     """
     thr = cfg.piece_threshold
     segs, img, Rs = [], small, []
-    for level in range(3):
+    for level in range(cfg.pyramid_levels):
         F = redness_map(img)
         R = line_contrast(F, sigma_x=cfg.sigma_x_px)
         Rs.append(R)
@@ -159,7 +159,7 @@ def _line_maps(small: np.ndarray, cfg: BandConfig):
         sg = line_pieces(R, F, img, thr=thr, min_len=5.0, level=level)
         if sg is not None:
             segs.append(sg)
-        if level < 2 and min(img.shape[:2]) >= 64:
+        if level < cfg.pyramid_levels - 1 and min(img.shape[:2]) >= 64:
             img = cv2.pyrDown(img)
         else:
             break

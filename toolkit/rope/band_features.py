@@ -312,7 +312,7 @@ def candidate_features(fit: BandFit, ctx: BandContext) -> dict:
         log_density=float(np.log(ctx.density + 0.002)), coverage=float(fit.coverage),
         shape=float(np.clip((fit.length_px / T - 3.0) / 10.0, 0.0, 1.0)), hue=float(max(0.0, fit.hue - 0.15)),
         edge_min=float(min(ctx.edges)), edge_max=float(max(ctx.edges)), log_clutter=float(np.log1p(ctx.clutter)),
-        members=float(fit.members - 1), coarse=float(fit.level == 2), resid=float(fit.resid / T),
+        members=float(fit.members - 1), coarse=float(fit.level >= 2), resid=float(fit.resid / T),
         step=float(min(ctx.step, 1.0)), corr=float(ctx.corr), red_area=float(ctx.red_area),
         peaky=float(ctx.peaky), log_red=float(np.log(fit.red + 0.01)), log_edge_snr=float(np.log1p(ctx.edge_snr)))
 

@@ -103,7 +103,10 @@ def _fit_centre_line(R, m, cols, xs, yy, T):
     ws = w.sum(0)
     ymean = (w * yy).sum(0) / np.maximum(ws, 1e-9)
     xv, yv = xs[cols], ymean[cols]
-    deg = 2 if len(cols) > 12 else 1
+    # a quadratic only where the columns cover the band (a wide strap read with too thin a
+    # line filter gives columns near its ends only, and a quadratic through those sags at will)
+    covered = len(cols) / max(1.0, float(cols.max() - cols.min() + 1))
+    deg = 2 if len(cols) > 12 and covered >= 0.5 else 1
     coef = np.polyfit(xv, yv, deg, w=np.sqrt(ws[cols]))
     res = yv - np.polyval(coef, xv)
     good = np.abs(res) < max(2.0, 0.75 * T)

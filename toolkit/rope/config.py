@@ -52,6 +52,10 @@ class BandConfig:
     #: bands are searched on a copy downscaled to this long side, full-resolution pixels
     #: (docs/decisions/work-resolution.md)
     work_long_side_px: int = 1600
+    #: pyramid levels searched for thin lines (each halves the copy; a level finds lines up to
+    #: about 5 px thick there: 4 levels reach bands about 40 px thick in the working copy, a
+    #: 50 mm strap from 1.5 m on a 12 MP photo; docs/decisions/band-detector.md)
+    pyramid_levels: int = 4
     #: line-contrast level (red-ness units) of the pixels forming pieces (docs/decisions/band-detector.md)
     piece_threshold: float = 0.012
     #: minimum mean red-ness contrast of a piece or band (docs/decisions/band-detector.md)
@@ -184,6 +188,12 @@ class RopeConfig:
     finder_check_max_marker_mm : the check is skipped when the user's marker is wider than this
         (mm): the rope finder was trained on 5-15 mm ropes and refuses wide straps
         (docs/decisions/rope-finder.md).
+    wide_marker_min_elongation : for such a wide marker, the band detector keeps bands at least
+        this many times as long as thick (instead of ``band.min_elongation``): a 40 mm strap
+        round a 15 cm stem is under 4 times as long as it is wide (docs/decisions/band-detector.md).
+    wide_marker_min_px : ... and the finder's check is skipped only for a band at least this thick
+        (working-image pixels: a 40 mm strap within about 10 m); a thinner band, or a row found
+        through the stem's profile, is checked as a rope is (docs/decisions/rope-finder.md).
     band, stem_search, finder : the detectors' own parameters.
     """
     weak_score: float = 0.0
@@ -191,6 +201,8 @@ class RopeConfig:
     pick_near_px: float = 15.0
     finder_cross_check: bool = True
     finder_check_max_marker_mm: float = 15.0
+    wide_marker_min_elongation: float = 2.5
+    wide_marker_min_px: float = 4.0
     band: BandConfig = field(default_factory=BandConfig)
     stem_search: StemSearchConfig = field(default_factory=StemSearchConfig)
     finder: FinderConfig = field(default_factory=FinderConfig)

@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import enum
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Callable
 
 import numpy as np
@@ -225,6 +225,10 @@ def select_rope(img: np.ndarray, segment: Callable[[], np.ndarray], cell: float,
     """
     cfg = config or RopeConfig()
     tm: dict = {}
+    wide = marker_width_mm is not None and marker_width_mm > cfg.finder_check_max_marker_mm
+    if wide:
+        cfg = replace(cfg, band=replace(cfg.band, min_elongation=min(cfg.band.min_elongation,
+                                                                     cfg.wide_marker_min_elongation)))
     st = _State(detect_rope(img, None, pick_xy=pick_xy, weak_score=cfg.weak_score, config=cfg.band), RopeSource.BAND)
     t_seg = time.perf_counter()
     instance = segment()
@@ -235,9 +239,15 @@ def select_rope(img: np.ndarray, segment: Callable[[], np.ndarray], cell: float,
     off_pick = (pick_xy is not None and bool(st.rope)
                 and distance_to_band(st.rope, pick_xy) > max(cfg.pick_near_px, 2 * cell))
     _stem_search(img, instance, st, pick_xy, off_pick, verifier, cfg)
+    # the finder knows ropes, not wide straps: a band as thick as a strap seen from a measuring
+    # distance is not checked by it but must lie across a segmented trunk; a thin band, or a row
+    # found through the stem's profile, is checked as a rope is
+    strap_like = (wide and bool(st.rope) and st.source is RopeSource.BAND and not st.weak_refused
+                  and float(getattr(st.rope, "thickness_px", 0.0) or 0.0) >= cfg.wide_marker_min_px)
+    if strap_like and pick_xy is None and not rope_across_trunk(st.rope, instance, cell):
+        st.weak_refused, strap_like = True, False
     if finder is not None:
-        wide = marker_width_mm is not None and marker_width_mm > cfg.finder_check_max_marker_mm
-        _finder_stage(_FinderView(finder, img, tm), img.shape[:2], st, pick_xy, cfg, check=not wide)
+        _finder_stage(_FinderView(finder, img, tm), img.shape[:2], st, pick_xy, cfg, check=not strap_like)
     return _choice(st, pick_xy, tm)
 
 
