@@ -36,6 +36,9 @@ def evaluate(
                                   "visible pixels plus Gaussian noise of --tap-noise-px."),
     rope_known: bool = typer.Option(False, "--rope-known", help="Simulate a user who gives the rope's "
                                     "diameter (dbh measure --rope-mm): each sample's true rope diameter."),
+    rope_mm: Optional[float] = typer.Option(None, "--rope-mm", min=1.0, max=100.0, help="Simulate a user "
+                                            "whose marker width is set (dbh marker, or --rope-mm) for every "
+                                            "photo, rope-free ones included: this width, mm.", show_default=False),
     workers: int = typer.Option(1, "--workers", "-j", min=1, help="Processes measuring in parallel."),
     out_dir: Optional[Path] = typer.Option(None, "--out-dir", help="Write overlays (and tree PLYs) here.",
                                            show_default=False),
@@ -64,8 +67,10 @@ def evaluate(
     for f in (folder, heldout):
         if f is not None and not f.is_dir():
             raise fail(f"{f}: no such folder", 2)
+    if rope_known and rope_mm is not None:
+        raise typer.BadParameter("give --rope-known or --rope-mm, not both", param_hint="--rope-mm")
     opts = dict(limit=limit, gt_perception=gt_perception, tap_base=tap_base, tap_rope=tap_rope,
-                tap_noise_px=tap_noise_px, rope_known=rope_known)
+                tap_noise_px=tap_noise_px, rope_known=rope_known, rope_mm=rope_mm)
     backend = _eval_backend(measure_fn, session_factory, models_dir, gt_perception)
     err_console = Console(stderr=True)
     report, interrupted = _eval_folder(folder, backend, workers, out_dir, err_console, **opts)
@@ -86,7 +91,7 @@ def evaluate(
 
 def _eval_folder(folder: Path, backend, workers: int, out_dir: Optional[Path], err_console, *,
                  limit: Optional[int], gt_perception: bool, tap_base: bool, tap_rope: bool,
-                 tap_noise_px: float, rope_known: bool) -> tuple[dict, bool]:
+                 tap_noise_px: float, rope_known: bool, rope_mm: Optional[float] = None) -> tuple[dict, bool]:
     """Measure one folder's samples and print its tables: ``(report, interrupted)``, the report as
     :func:`~monodbh.toolkit.evaluation.synth_eval.eval_report` writes it, plus the folder's ``look``."""
     from rich.console import Console
@@ -106,7 +111,7 @@ def _eval_folder(folder: Path, backend, workers: int, out_dir: Optional[Path], e
     except se.SampleRecordError as exc:
         raise fail(str(exc))
     jobs = se.eval_jobs(samples, tap_base=tap_base, tap_rope=tap_rope, tap_noise_px=tap_noise_px,
-                        rope_known=rope_known, out_dir=out_dir)
+                        rope_known=rope_known, rope_mm=rope_mm, out_dir=out_dir)
     try:
         records, interrupted = _measure_all(jobs, samples, backend, workers, err_console)
     except MonodbhError as exc:
@@ -121,7 +126,7 @@ def _eval_folder(folder: Path, backend, workers: int, out_dir: Optional[Path], e
     se.print_eval(m, stages, console)
     report = se.eval_report(folder, records, jobs, m, stages, gt_perception=gt_perception,
                             tap_base=tap_base, tap_rope=tap_rope, tap_noise_px=tap_noise_px,
-                            rope_known=rope_known, interrupted=interrupted)
+                            rope_known=rope_known, interrupted=interrupted, rope_mm=rope_mm)
     report["look"] = look
     if interrupted:
         err_console.print(f"{folder}: interrupted after {len(records)} of {len(jobs)} samples", style="yellow")

@@ -80,6 +80,9 @@ def test_eval_jobs_and_records_follow_the_samples(tmp_path):
     assert jobs[0].pick_xy == (35.0, 20.0) and jobs[1].pick_xy is None       # the rope's middle pixel
     assert jobs[0].rope_diameter_m == 0.01 and jobs[1].rope_diameter_m is None
     assert jobs[0].base_xy is None and jobs[0].out_dir == str(tmp_path / "o")
+    # a user whose camera file holds a marker width: every photo gets it, rope-free ones too
+    fixed = eval_jobs(samples, rope_mm=40.0)
+    assert [j.rope_diameter_m for j in fixed] == [0.04, 0.04]
     rec = eval_record(samples[0], {"dbh_cm": 31.5, "rope_xy": [35.0, 20.0], "error": None})
     assert rec["sample"] == 0 and rec["err_cm"] == pytest.approx(1.5) and rec["on_true_rope"] is True
     rec = eval_record(samples[1], {"dbh_cm": None, "rope_xy": None, "error": "x: no rope"})

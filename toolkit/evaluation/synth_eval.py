@@ -105,7 +105,7 @@ def _base_truth(stem: Path, meta: dict) -> tuple[Optional[str], Optional[float]]
 
 
 def eval_jobs(samples: Sequence[EvalSample], *, tap_base: bool = False, tap_rope: bool = False,
-              tap_noise_px: float = 3.0, rope_known: bool = False,
+              tap_noise_px: float = 3.0, rope_known: bool = False, rope_mm: Optional[float] = None,
               out_dir: Optional[Path] = None) -> list[Job]:
     """The batch jobs measuring ``samples`` (in order), as a user of the chosen mode would.
 
@@ -122,6 +122,9 @@ def eval_jobs(samples: Sequence[EvalSample], *, tap_base: bool = False, tap_rope
         1-sigma of the simulated taps, pixels per axis.
     rope_known : bool
         Give each photo its rope's true diameter (``rope_diameter_m``).
+    rope_mm : float, optional
+        Give every photo (rope-free ones included) this marker width, as a user whose camera
+        file holds it (``dbh marker``) would; instead of ``rope_known``.
     out_dir : Path, optional
         Write overlays (and tree PLYs) there.
 
@@ -133,7 +136,8 @@ def eval_jobs(samples: Sequence[EvalSample], *, tap_base: bool = False, tap_rope
     for n, s in enumerate(samples):
         base_xy = sample_base_tap(s.stem, s.meta, tap_noise_px, s.index) if tap_base else None
         pick_xy = sample_rope_tap(s.stem, s.meta, tap_noise_px, s.index) if tap_rope else None
-        rope_m = true_rope_diameter_m(s.meta) if rope_known else None
+        rope_m = (rope_mm / 1000.0 if rope_mm is not None
+                  else true_rope_diameter_m(s.meta) if rope_known else None)
         jobs.append(Job(n, str(s.stem.with_suffix(".jpg")), s.camera, pick_xy=pick_xy, base_xy=base_xy,
                         rope_diameter_m=rope_m, out_dir=str(out_dir) if out_dir else None))
     return jobs
@@ -172,7 +176,7 @@ def eval_record(sample: EvalSample, result: dict) -> dict:
 
 def eval_report(folder: Path, records: Sequence[dict], jobs: Sequence[Job], metrics: dict, stages: dict, *,
                 gt_perception: bool, tap_base: bool, tap_rope: bool, tap_noise_px: float, rope_known: bool,
-                interrupted: bool) -> dict:
+                interrupted: bool, rope_mm: Optional[float] = None) -> dict:
     """The ``dbh eval --json`` report: the mode, ``metrics`` (:func:`eval_metrics`), ``timings_ms``
     (:func:`stage_stats`) and the rows ``samples`` (:func:`eval_record`)."""
     return {"folder": str(folder), "gt_perception": gt_perception, "interrupted": interrupted,
@@ -180,7 +184,7 @@ def eval_report(folder: Path, records: Sequence[dict], jobs: Sequence[Job], metr
                          if tap_base else None),
             "tap_rope": ({"noise_px": tap_noise_px, "tapped": sum(j.pick_xy is not None for j in jobs)}
                          if tap_rope else None),
-            "rope_known": rope_known,
+            "rope_known": rope_known, "rope_mm": rope_mm,
             "metrics": metrics, "timings_ms": stages, "samples": list(records)}
 
 
