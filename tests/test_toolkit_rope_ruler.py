@@ -140,3 +140,17 @@ def test_a_finder_band_is_read_as_a_wide_marker():
     assert wide_marker_width(img, line, 6.0) is None
     w, by_edges = wide_marker_width(img, line, 6.0, fwhm_fallback=True)
     assert not by_edges and 21.0 < w < 27.0                  # 24 px in the middle
+
+
+def test_a_piece_of_the_band_found_at_full_resolution_is_the_same_rope():
+    # an interrupted rope is found at full resolution in pieces: one off the working band's
+    # middle but on its line is the same rope; a band beside it is not
+    from monodbh.toolkit.rope.ruler import _on_band
+    xs = np.linspace(100, 500, 41)
+    P = np.stack([xs, 200 + 0.05 * (xs - 300)], 1)              # the working band, 8 px thick
+    piece = np.stack([np.linspace(380, 480, 11), 200 + 0.05 * (np.linspace(380, 480, 11) - 300) + 1.5], 1)
+    assert _on_band(piece, P, 8.0)
+    beside = piece + (0, 30)                                    # a red line 30 px below
+    assert not _on_band(beside, P, 8.0)
+    outside = piece + (500, 0)                                  # beyond the band's columns
+    assert not _on_band(outside, P, 8.0)

@@ -214,6 +214,20 @@ def _finder_ruler(rgb: np.ndarray, camera, frame, rope, full_resolution: bool, t
     return out
 
 
+def _on_band(polyline, P: np.ndarray, T: float) -> bool:
+    """Whether a band found at full resolution (centre line ``polyline`` (M, 2)) is a piece of
+    the working image's band (centre line ``P`` (N, 2), thickness ``T``, the same pixels): a rope
+    interrupted by a twig or the stem's shade is found there in pieces, each as thick as the rope.
+    Its points within the band's columns lie within ``max(T, 3)`` px of its centre line (median)."""
+    q = np.asarray(polyline, np.float64)
+    order = np.argsort(P[:, 0])
+    px, py = P[order, 0], P[order, 1]
+    inside = (q[:, 0] >= px[0]) & (q[:, 0] <= px[-1])
+    if inside.sum() < 2:
+        return False
+    return float(np.median(np.abs(q[inside, 1] - np.interp(q[inside, 0], px, py)))) <= max(T, 3.0)
+
+
 def rope_at_full_resolution(rgb: np.ndarray, camera, frame, rope, *, edges: bool = True) -> dict | None:
     """The rope's thickness read again on the full-resolution photo (a 12 MP photo is measured
     at the working long side, where a rope is 2.5x thinner than the sensor sees it).
@@ -247,7 +261,8 @@ def rope_at_full_resolution(rgb: np.ndarray, camera, frame, rope, *, edges: bool
     L = float(np.linalg.norm(P[-1] - P[0]))
     c = (np.asarray(rope.center_xy, np.float64) + 0.5) / (sx, sy) - 0.5 - (box[0], box[1])
     det = detect_rope(crop, None, pick_xy=(float(c[0]), float(c[1])), min_score=-np.inf)
-    if not det or np.hypot(*(np.asarray(det.center_xy) - c)) > max(3 * T, 0.15 * L) + 4:
+    if not det or not (np.hypot(*(np.asarray(det.center_xy) - c)) <= max(3 * T, 0.15 * L) + 4
+                       or _on_band(det.polyline, P, T)):
         return None
     if not 0.4 < det.thickness_px / max(T, 1e-6) < 2.5:
         return None
