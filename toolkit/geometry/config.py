@@ -49,8 +49,6 @@ class StemEdgesConfig:
     #: ... when the band runs on past the mask edge by more than the rope's half thickness plus
     #: this many pixels (and the ``rope_gap_min_*`` margin) (stem-edges-rope-check.md)
     rope_overrun_extra_px: float = 1.5
-    #: ... the fraction of the rope's contrast that ends its red run
-    rope_red_end_ratio: float = 0.5
     #: edges wider than this factor times the rope band's length are flagged
     #: ``width_disagrees_rope`` and the gap enters the DBH sigma (stem-edges-rope-check.md)
     width_rope_ratio_max: float = 1.3

@@ -243,7 +243,7 @@ def select_rope(img: np.ndarray, segment: Callable[[], np.ndarray], cell: float,
     # distance is not checked by it but must lie across a segmented trunk; a thin band, or a row
     # found through the stem's profile, is checked as a rope is
     strap_like = (wide and bool(st.rope) and st.source is RopeSource.BAND and not st.weak_refused
-                  and float(getattr(st.rope, "thickness_px", 0.0) or 0.0) >= cfg.wide_marker_min_px)
+                  and float(st.rope.thickness_px or 0.0) >= cfg.wide_marker_min_px)
     if strap_like and pick_xy is None and not rope_across_trunk(st.rope, instance, cell):
         st.weak_refused, strap_like = True, False
     if finder is not None:
