@@ -48,7 +48,7 @@ __all__ = [
 
 IMAGENET_MEAN: tuple[float, float, float] = (0.485, 0.456, 0.406)
 IMAGENET_STD: tuple[float, float, float] = (0.229, 0.224, 0.225)
-SIZES: tuple[str, ...] = ("tiny", "base", "wide", "base384")  # "wide": depth/tree/rope_finder; "base384": segmenter only
+SIZES: tuple[str, ...] = ("tiny", "base", "wide", "base384", "effl0")  # "wide": depth/tree/rope_finder; "base384", "effl0": segmenter only
 
 
 @dataclass(frozen=True)

@@ -3,7 +3,8 @@
 Paper (Li & Kan 2024, sec. 2.1) uses Mask2Former for tree instance masks; this is a laptop-sized
 re-design of its three parts (Cheng et al. 2022):
 
-1. **Backbone**: small ResNet-like CNN (stem stride 4, four stages at strides 4/8/16/32).
+1. **Backbone**: small ResNet-like CNN (stem stride 4, four stages at strides 4/8/16/32), or
+   (size ``effl0``) an EfficientNet-Lite0 trunk (:mod:`.efficientnet_lite`).
 2. **Pixel decoder**: FPN (lateral 1x1 + top-down nearest upsampling + 3x3 fusion) with a few
    plain transformer-encoder layers on the stride-32 tokens (instead of multi-scale deformable
    attention, which onnxruntime cannot run efficiently). Outputs ``mask_features`` at stride 4
@@ -31,6 +32,7 @@ from torch.nn import functional as F
 
 from monodbh.models.modeling.common import (NEG_INF, MLP, BasicBlock, ConvBNAct,
                                             sine_position_encoding)
+from monodbh.models.modeling.efficientnet_lite import FEATURE_CHANNELS, EfficientNetLite0
 from monodbh.models.modeling.registry import ModelSpec, Preprocess, TensorSpec, register
 
 __all__ = ["CLASSES", "TREE_CLASS", "NO_OBJECT", "SegmenterConfig", "CONFIGS", "Segmenter",
@@ -56,6 +58,7 @@ class SegmenterConfig:
     enc_layers: int
     enc_ffn: int
     mask_mlp_layers: int = 3
+    backbone: str = "resnet"                #: "resnet" (:class:`Backbone`) or "effl0" (pretrained)
 
 
 CONFIGS: dict[str, SegmenterConfig] = {
@@ -66,6 +69,10 @@ CONFIGS: dict[str, SegmenterConfig] = {
     # experiment, 900 steps from the "base" weights: held-out roped IoU 0.744 -> 0.755, PQ 0.41
     # -> 0.50, but benchmark DBH MAE 6.38 -> 6.75 cm; not shipped (docs/TRAINING.md)
     "base384": SegmenterConfig(384, (32, 64, 128, 192), (1, 2, 2, 2), 128, 64, 4, 6, 512, 2, 256),
+    # the "base" head on an EfficientNet-Lite0 trunk whose ImageNet weights start the training
+    # (real photos' bark and foliage; docs/TRAINING.md)
+    "effl0": SegmenterConfig(256, FEATURE_CHANNELS, (0, 0, 0, 0), 128, 64, 4, 6, 512, 2, 256,
+                             backbone="effl0"),
 }
 
 
@@ -211,7 +218,8 @@ class Segmenter(nn.Module):
         self.cfg = cfg
         D = cfg.hidden
         self.num_classes = num_classes
-        self.backbone = Backbone(cfg.channels, cfg.blocks)
+        self.backbone = (EfficientNetLite0() if cfg.backbone == "effl0"
+                         else Backbone(cfg.channels, cfg.blocks))
         self.pixel_decoder = PixelDecoder(cfg.channels, D, cfg.heads, cfg.enc_layers, cfg.enc_ffn)
         self.query_feat = nn.Embedding(cfg.queries, D)
         self.query_pos = nn.Embedding(cfg.queries, D)

@@ -22,6 +22,7 @@ from __future__ import annotations
 import math
 import os
 from dataclasses import asdict
+from pathlib import Path
 from typing import Any, Callable, Sequence
 
 import cv2
@@ -428,7 +429,8 @@ def train_segmenter(run_dir: str | os.PathLike, steps: int = 20000, data: Any = 
                     min_thing_area: int = 64,
                     gen_size: tuple[int, int] = (320, 240), threads: int | None = None,
                     stop_at: int | None = None, verbose: bool = True,
-                    init_weights: str | None = None) -> dict[str, Any]:
+                    init_weights: str | None = None,
+                    backbone_lr_scale: float = 1.0) -> dict[str, Any]:
     """Train the segmenter; resumable (see ``training.common.train_loop``).
 
     Parameters
@@ -455,6 +457,13 @@ def train_segmenter(run_dir: str | os.PathLike, steps: int = 20000, data: Any = 
         are not targets (see :func:`build_targets`).
     stop_at : int, optional
         Stop after this many total steps (time slice); continue later with ``resume=True``.
+    init_weights : path, optional
+        Warm start: a shipped ONNX file or a packed weights file of the same size; for size
+        ``effl0`` (whose trunk always starts from its ImageNet weights) a shipped segmenter's
+        ONNX file gives the head (:func:`~monodbh.models.training.pretrained.segmenter_head_from_onnx`).
+    backbone_lr_scale : float
+        The backbone's learning rate relative to ``lr`` (0.1 keeps a pretrained trunk near its
+        ImageNet features, as Mask2Former fine-tunes its backbones).
 
     Returns
     -------
@@ -469,11 +478,26 @@ def train_segmenter(run_dir: str | os.PathLike, steps: int = 20000, data: Any = 
     aug = aug if aug is not None else AugmentConfig()
     torch.manual_seed(seed)
     model = build("segmenter", size).to(device)
-    decay, no_decay = [], []
+    pretrained: dict[str, Any] = {}
+    if model.cfg.backbone == "effl0" and not (resume and (Path(run_dir) / "checkpoint.pt").exists()):
+        # ImageNet weights for the trunk; a shipped segmenter (--init ONNX) gives the head
+        from monodbh.models.training.pretrained import (load_efficientnet_lite0,
+                                                        segmenter_head_from_onnx)
+
+        pretrained["backbone_tensors"] = load_efficientnet_lite0(model.backbone)
+        if init_weights and str(init_weights).endswith(".onnx"):
+            info = segmenter_head_from_onnx(model, init_weights)
+            pretrained.update(head_from=str(init_weights), head_tensors=info["copied"])
+            init_weights = None
+        if verbose:
+            print(f"EfficientNet-Lite0 trunk from ImageNet weights ({pretrained})", flush=True)
+    groups: dict[tuple[bool, bool], list[torch.nn.Parameter]] = {}
     for n, p in model.named_parameters():
-        (no_decay if p.ndim <= 1 or "query" in n or "level_embed" in n else decay).append(p)
-    optim = torch.optim.AdamW([{"params": decay, "weight_decay": weight_decay},
-                               {"params": no_decay, "weight_decay": 0.0}], lr=lr)
+        no_wd = p.ndim <= 1 or "query" in n or "level_embed" in n
+        groups.setdefault((no_wd, n.startswith("backbone.")), []).append(p)
+    optim = torch.optim.AdamW([{"params": ps, "weight_decay": 0.0 if no_wd else weight_decay,
+                                "lr": lr * (backbone_lr_scale if trunk else 1.0)}
+                               for (no_wd, trunk), ps in sorted(groups.items())], lr=lr)
 
     def lr_lambda(step: int) -> float:
         if step < warmup_steps:
@@ -484,13 +508,15 @@ def train_segmenter(run_dir: str | os.PathLike, steps: int = 20000, data: Any = 
     sched = torch.optim.lr_scheduler.LambdaLR(optim, lr_lambda)
     crit = SetCriterion(num_points=num_points)
     config = {"kind": "segmenter", "size": size, "seed": seed, "batch_size": batch_size,
-              "lr": lr, "weight_decay": weight_decay, "warmup_steps": warmup_steps,
+              "lr": lr, "backbone_lr_scale": backbone_lr_scale, "weight_decay": weight_decay, "warmup_steps": warmup_steps,
               "grad_clip": grad_clip, "num_points": num_points, "min_area": min_area,
               "min_thing_area": min_thing_area,
               "aug": aug.to_dict() if aug else None, "n_val": n_val,
               "data": _cfg(source), "val_data": _cfg(val_source), "gen_size": list(gen_size),
               "loss": {"eos_coef": 0.1, "w_class": 2.0, "w_mask": 5.0, "w_dice": 5.0},
               "device": str(device), "spec": spec.to_dict()}
+    if pretrained:
+        config["pretrained"] = pretrained
 
     def step_fn(step: int) -> dict[str, float]:
         imgs, tgts = make_batch(source, step, batch_size, seed, spec, aug, min_area,
