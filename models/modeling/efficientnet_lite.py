@@ -12,6 +12,8 @@ from __future__ import annotations
 import torch
 from torch import nn
 
+from monodbh.models.modeling.registry import IMAGENET_MEAN, IMAGENET_STD
+
 __all__ = ["BLOCKS", "FEATURE_CHANNELS", "FEATURE_BLOCKS", "EfficientNetLite0"]
 
 #: (repeats, kernel, stride, expand ratio, in channels, out channels) per stage (EfficientNet-B0's)
@@ -23,7 +25,6 @@ FEATURE_BLOCKS: tuple[int, ...] = (2, 4, 10, 15)
 FEATURE_CHANNELS: tuple[int, ...] = (24, 40, 112, 320)
 #: the pretrained weights' input: RGB in [0, 1] as (x - 0.498) / 0.502 (TF's (x*255 - 127) / 128)
 _LITE_MEAN, _LITE_STD = 127.0 / 255.0, 128.0 / 255.0
-_IMAGENET_MEAN, _IMAGENET_STD = (0.485, 0.456, 0.406), (0.229, 0.224, 0.225)
 _BN_EPS, _BN_MOMENTUM = 1e-3, 0.01
 
 
@@ -73,7 +74,7 @@ class EfficientNetLite0(nn.Module):
 
     def __init__(self) -> None:
         super().__init__()
-        m, s = torch.tensor(_IMAGENET_MEAN), torch.tensor(_IMAGENET_STD)
+        m, s = torch.tensor(IMAGENET_MEAN), torch.tensor(IMAGENET_STD)
         # x_lite = (x * s + m - LM) / LS = x * scale + shift
         self.register_buffer("in_scale", (s / _LITE_STD).view(1, 3, 1, 1), persistent=False)
         self.register_buffer("in_shift", ((m - _LITE_MEAN) / _LITE_STD).view(1, 3, 1, 1),

@@ -6,7 +6,7 @@
   :class:`monodbh.models.modeling.efficientnet_lite.EfficientNetLite0`.
 * :func:`segmenter_head_from_onnx`: the shipped segmenter's head (transformer encoder and
   decoder, queries, class and mask heads) recovered from its ONNX file
-  (:func:`monodbh.models.training.onnx_init.load_onnx_into`) into a segmenter with another
+  (:func:`monodbh.models.training.onnx_init.state_dict_from_onnx`) into a segmenter with another
   backbone; the layers that read the backbone (the FPN's lateral 1x1 convolutions) start fresh.
 
 Imported by :mod:`.segmenter`.
@@ -47,7 +47,8 @@ def load_efficientnet_lite0(backbone: nn.Module, path: str | os.PathLike | None 
     ValueError
         A tensor of ``backbone`` is missing from the file or has another shape.
     """
-    sd = torch.load(path or efficientnet_lite0_path(), map_location="cpu", weights_only=True)
+    path = path or efficientnet_lite0_path()
+    sd = torch.load(path, map_location="cpu", weights_only=True)
     own = backbone.state_dict()
     bad = [k for k in own if k not in sd or tuple(sd[k].shape) != tuple(own[k].shape)]
     if bad:

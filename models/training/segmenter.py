@@ -508,7 +508,8 @@ def train_segmenter(run_dir: str | os.PathLike, steps: int = 20000, data: Any = 
     sched = torch.optim.lr_scheduler.LambdaLR(optim, lr_lambda)
     crit = SetCriterion(num_points=num_points)
     config = {"kind": "segmenter", "size": size, "seed": seed, "batch_size": batch_size,
-              "lr": lr, "backbone_lr_scale": backbone_lr_scale, "weight_decay": weight_decay, "warmup_steps": warmup_steps,
+              "lr": lr, "backbone_lr_scale": backbone_lr_scale, "weight_decay": weight_decay,
+              "warmup_steps": warmup_steps,
               "grad_clip": grad_clip, "num_points": num_points, "min_area": min_area,
               "min_thing_area": min_thing_area,
               "aug": aug.to_dict() if aug else None, "n_val": n_val,
