@@ -29,6 +29,7 @@ COMMANDS = {
     "train": ("train_cmd", "train"),
     "export": ("train_cmd", "export"),
     "train-pack": ("train_cmd", "train_pack"),
+    "train-blend": ("train_cmd", "train_blend"),
 }
 
 

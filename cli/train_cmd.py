@@ -28,6 +28,9 @@ def train(
                                              "or a `dbh train-pack` weights file."),
     augment: Optional[str] = typer.Option(None, "--augment", help="Segmenter augmentation preset: default | "
                                           "strong (wider colour jitter)."),
+    lr: Optional[float] = typer.Option(None, "--lr",
+                                       help="Peak learning rate (depth and tree: the generator's); default: "
+                                            "the kind's own."),
 ) -> None:
     """Train one of the networks on synthetic scenes (CPU, or CUDA when present)."""
     if kind not in KINDS:
@@ -51,6 +54,10 @@ def train(
         opts["crop"] = crop
     if threads:
         opts["threads"] = threads
+    if lr is not None:
+        if not lr > 0:
+            raise typer.BadParameter(f"must be positive, got {lr}", param_hint="--lr")
+        opts["lr_g" if kind in ("depth", "tree") else "lr"] = lr
     d = [str(p) for p in data] if data else None
     v = [str(p) for p in val] if val else None
     if kind == "segmenter":
@@ -97,3 +104,21 @@ def train_pack(
     from monodbh.models.training.common import pack_weights
     info = pack_weights(run_dir, out)
     typer.echo(f"{out}: {info['kind']}/{info['size']} step {info['step']}, {info['bytes'] / 1e6:.1f} MB", err=True)
+
+
+def train_blend(
+    run_dir: Path = typer.Argument(..., exists=True, file_okay=False, help="A finished warm-started run (--init)."),
+    out: Path = typer.Option(..., "--out", "-o", help="New run folder to write (for dbh export)."),
+    alpha: float = typer.Option(..., "--alpha", min=0.0, max=1.0,
+                                help="The fine-tuned weights' share (1: the run as trained, 0: where it started)."),
+    start: Optional[Path] = typer.Option(None, "--start", exists=True, dir_okay=False,
+                                         help="The starting weights' ONNX file (default: the run's --init file)."),
+) -> None:
+    """Blend a fine-tuned run's weights with those it started from (WiSE-FT) into a new run folder."""
+    from monodbh.models.training.blend import blend_run
+    try:
+        info = blend_run(run_dir, out, alpha, start=start)
+    except (ValueError, FileExistsError, FileNotFoundError) as e:
+        typer.echo(f"error: {e}", err=True)
+        raise typer.Exit(1)
+    typer.echo(f"{out}: alpha {info['alpha']} of {run_dir}, start {info['start']} ({info['start_sha256'][:12]})", err=True)

@@ -36,3 +36,21 @@ def test_kinds_are_the_networks_names(tmp_path):
     r = CliRunner().invoke(app, ["train", "ropeseg", "--out", str(tmp_path / "r")])
     assert r.exit_code == 2 and "rope_finder" in r.output
     assert not (tmp_path / "r").exists()
+
+
+@pytest.mark.parametrize("kind,module,fn,key", [("stem_base", "stem_base", "train_stem_base", "lr"),
+                                                ("tree", "tree", "train_tree", "lr_g")])
+def test_lr_reaches_the_kinds_config(tmp_path, monkeypatch, kind, module, fn, key):
+    import importlib
+
+    seen = {}
+    mod = importlib.import_module(f"monodbh.models.training.{module}")
+    monkeypatch.setattr(mod, fn, lambda *a, **kw: seen.update(kw) or {"step": 0})
+    r = CliRunner().invoke(app, ["train", kind, "--out", str(tmp_path / "r"), "--steps", "5", "--lr", "5e-4"])
+    assert r.exit_code == 0, r.output
+    assert seen[key] == 5e-4 and ({"lr", "lr_g"} - {key}).isdisjoint(seen)
+
+
+def test_lr_must_be_positive(tmp_path):
+    r = CliRunner().invoke(app, ["train", "stem_base", "--out", str(tmp_path / "r"), "--lr", "0"])
+    assert r.exit_code == 2 and "--lr" in r.output

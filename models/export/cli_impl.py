@@ -209,7 +209,8 @@ def export_run(run_dir: str | os.PathLike, ship: bool = False, n_calib: int = 32
                      "init_weights": config.get("init_weights"),
                      "total_steps": int(ckpt.get("step", config.get("steps", 0)))
                      + int((config.get("init_weights") or {}).get("from_step") or 0),
-                     "data": config.get("data"), "val_data": config.get("val_data")},
+                     "data": config.get("data"), "val_data": config.get("val_data"),
+                     **({"blend": config["blend"]} if config.get("blend") else {})},
         "fp32": {"path": str(fp32_path), "check": check, "metrics": fp32_row.get("metrics", {}),
                  "latency_ms": fp32_row.get("latency_ms"),
                  "size_mb": fp32_path.stat().st_size / 2**20},
