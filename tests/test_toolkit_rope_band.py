@@ -90,6 +90,9 @@ def test_api_and_input_checks():
         detect_rope(np.zeros((40, 40, 3), np.uint8), tree_mask=np.zeros((20, 20), bool))
     det = detect_rope(np.full((120, 160, 3), 90, np.uint8))
     assert not det and not det.found and det.reason and det.mask is None
+    # no rope: the user is told how to retake the photo, on one line
+    assert det.reason.startswith("no red rope found") and "2 px" in det.reason and "--pick" in det.reason
+    assert "\n" not in det.reason
 
 
 # ----------------------------------------------------------------------------- synthetic photos

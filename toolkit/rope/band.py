@@ -41,13 +41,12 @@ from .band_features import BoxCounts, band_context, candidate_features, candidat
 from .band_refine import refine_band
 from .band_segments import SEG_KEYS, BandFit, band_runs, diverse_runs, fit_band, line_pieces, link_pieces, piece_ends
 from .config import BandConfig
-from .detection import RopeCandidate, RopeDetection
+from .detection import NO_ROPE, RopeCandidate, RopeDetection
 from .geometry import distance_to_vertices, trunk_run
 from .redness import line_contrast, redness_map
 
 __all__ = ["detect_rope"]
 
-_NO_ROPE = "no red rope found (no thin red band across a trunk)"
 
 
 def detect_rope(rgb: np.ndarray, tree_mask: np.ndarray | None = None, *,
@@ -95,7 +94,7 @@ def detect_rope(rgb: np.ndarray, tree_mask: np.ndarray | None = None, *,
     segs, counts, F0, Rs = _line_maps(small, cfg)
     lap("lines")
     if not segs:
-        return RopeDetection(False, _NO_ROPE, timings_ms=tm)
+        return RopeDetection(False, NO_ROPE, timings_ms=tm)
     fits = _band_fits(_piece_table(segs, cfg), cfg, max(small.shape[:2]))
     lap("bands")
     maps = context_maps(small, counts, F0, Rs)
@@ -268,7 +267,7 @@ def _decide(rgb, cands, tree_mask, pick_xy, min_score, weak_score, margin, cfg: 
         cands = [c for c in cands if c is not best]
     if isinstance(best, str):
         return RopeDetection(False, best, candidates=cands, ambiguous=True, timings_ms=tm)
-    return RopeDetection(False, _NO_ROPE, candidates=cands, timings_ms=tm)
+    return RopeDetection(False, NO_ROPE, candidates=cands, timings_ms=tm)
 
 
 def _choose(cands: list[RopeCandidate], pick_xy, min_score: float, ambiguity_margin: float,

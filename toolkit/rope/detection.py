@@ -10,7 +10,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["RopeCandidate", "RopeDetection"]
+__all__ = ["RopeCandidate", "RopeDetection", "NO_ROPE"]
+
+#: the error of a photo where no rope was found, with what to do about it: a rope under about
+#: 2 px thick in the working image is rarely found (README, "Taking the photo")
+NO_ROPE = ("no red rope found (no thin red band across a trunk; retake closer or with a thicker marker "
+           "so that it is at least 2 px thick, or give --pick X,Y on it)")
 
 
 @dataclass(frozen=True)

@@ -24,7 +24,7 @@ from __future__ import annotations
 import numpy as np
 
 from .config import FinderConfig
-from .detection import RopeDetection
+from .detection import NO_ROPE, RopeDetection
 from .geometry import distance_to_chord
 
 __all__ = ["band_shaped", "rope_from_finder", "finder_support", "finder_check"]
@@ -70,7 +70,7 @@ def rope_from_finder(components, shape: tuple[int, int], *, pick_xy=None, min_pe
     else:
         good = [c for c in components if band_shaped(c, cfg) and c.peak >= min_peak and c.mass >= min_mass]
         if not good:
-            return RopeDetection(False, "no red rope found (no thin red band across a trunk)")
+            return RopeDetection(False, NO_ROPE)
         best = good[0]
         rivals = [c for c in components if c is not best and band_shaped(c, cfg) and c.peak >= min_peak
                   and c.mass >= rival_share * best.mass]

@@ -30,7 +30,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from .config import StemSearchConfig
-from .detection import RopeCandidate, RopeDetection
+from .detection import NO_ROPE, RopeCandidate, RopeDetection
 from .geometry import instance_at_or_near
 from .redness import red_shift_map, redness_map
 from .score import linear_score
@@ -436,7 +436,7 @@ def _chosen_band(bands, cands, pick_xy, min_score: float, margin: float, cfg: St
         return good[0]
     good = [b for b in bands if b.score > min_score and trunk_like(b, cfg)]
     if not good:
-        return RopeDetection(False, "no red rope found (no thin red band across a trunk)", candidates=cands)
+        return RopeDetection(False, NO_ROPE, candidates=cands)
     best = good[0]
     rivals = [b for b in good[1:] if b.tree_id != best.tree_id and b.score > best.score - margin]
     if rivals:
