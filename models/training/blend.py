@@ -10,7 +10,6 @@ config.json), so that both ends normalise alike; :func:`blend_run` refuses other
 from __future__ import annotations
 
 import hashlib
-import json
 import os
 import shutil
 from pathlib import Path
@@ -72,16 +71,16 @@ def blend_run(run_dir: str | os.PathLike, out_dir: str | os.PathLike, alpha: flo
     src, dst = RunDir(run_dir), RunDir(out_dir)
     if dst.path.exists():
         raise FileExistsError(f"{dst.path}: already exists")
+    config = src.read_config()
+    init = config.get("init_weights") or {}
+    if not init.get("frozen_bn"):
+        raise ValueError(f"{src.path}: not a warm start with frozen BatchNorm; blending needs one")
+    start = Path(start or init.get("file") or "")
+    if not start.is_file():
+        raise FileNotFoundError(f"{start}: starting weights not found")
     ckpt = src.load_checkpoint()
     if ckpt is None:
         raise FileNotFoundError(f"{src.checkpoint_path}: no checkpoint")
-    config = src.read_config()
-    init = config.get("init_weights") or {}
-    start = Path(start or init.get("file") or "")
-    if not init or not init.get("frozen_bn"):
-        raise ValueError(f"{src.path}: not a warm start with frozen BatchNorm; blending needs one")
-    if not start.is_file():
-        raise FileNotFoundError(f"{start}: starting weights not found")
     model = registry.build(ckpt["kind"], ckpt["size"])
     start_sd, _ = state_dict_from_onnx(start, model)
     blend = {"alpha": float(alpha), "start": str(start),

@@ -48,7 +48,6 @@ from .redness import line_contrast, redness_map
 __all__ = ["detect_rope"]
 
 
-
 def detect_rope(rgb: np.ndarray, tree_mask: np.ndarray | None = None, *,
                 pick_xy: tuple[float, float] | None = None,
                 height_check: Callable[[RopeCandidate], bool] | None = None,
