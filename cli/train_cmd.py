@@ -89,11 +89,21 @@ def export(
     val: Optional[List[Path]] = typer.Option(None, "--val", help="Evaluation folder(s)."),
     n_eval: Optional[int] = typer.Option(None, "--n-eval", min=1, help="Evaluation samples (default: --n-calib)."),
     force: bool = typer.Option(False, "--force", help="Ship even if the shipped model scores better on the same data."),
+    recipe: Optional[List[str]] = typer.Option(
+        None, "--recipe", help="Only these int8 recipes (repeatable; names as in the export table). "
+                               "One recipe makes the export reproducible: with several the fastest passing one "
+                               "is kept, which depends on the measured latency."),
 ) -> None:
     """Export a run to ONNX fp32 and int8 (onnxruntime.quantization), print fp32-vs-int8 tables."""
     from monodbh.models.export.cli_impl import export_run
+    from monodbh.models.export.quantize import recipes_by_name
+    try:
+        recipes = recipes_by_name(recipe) if recipe else None
+    except ValueError as e:
+        typer.echo(f"error: {e}", err=True)
+        raise typer.Exit(2)
     export_run(run_dir, ship=ship, n_calib=n_calib, tolerance=tolerance, n_eval=n_eval,
-               val_data=[str(p) for p in val] if val else None, force=force)
+               val_data=[str(p) for p in val] if val else None, force=force, recipes=recipes)
 
 
 def train_pack(

@@ -54,3 +54,11 @@ def test_lr_reaches_the_kinds_config(tmp_path, monkeypatch, kind, module, fn, ke
 def test_lr_must_be_positive(tmp_path):
     r = CliRunner().invoke(app, ["train", "stem_base", "--out", str(tmp_path / "r"), "--lr", "0"])
     assert r.exit_code == 2 and "--lr" in r.output
+
+
+def test_export_recipe_is_checked_before_any_work(tmp_path):
+    run = tmp_path / "run"
+    run.mkdir()
+    r = CliRunner().invoke(app, ["export", str(run), "--recipe", "u8s8_qdq_all", "--recipe", "int4_magic"])
+    assert r.exit_code == 2 and "int4_magic" in r.output and "u8s8_qdq_conv_gemm" in r.output
+    assert list(run.iterdir()) == []

@@ -7,7 +7,7 @@ import pytest
 
 from monodbh.models.export import (DEFAULT_RECIPES, TABLE_COLUMNS, QuantRecipe, benchmark,
                                    export_onnx, format_table, quantize_int8, random_feeds,
-                                   read_spec, search_int8)
+                                   read_spec, recipes_by_name, search_int8)
 from monodbh.models.export.cli_impl import export_run
 from monodbh.models.modeling import build, get_spec
 from monodbh.models.training.segmenter import train_segmenter
@@ -84,6 +84,14 @@ def test_search_int8_refuses_and_keeps_best(tiny_onnx, tmp_path):
                       tolerance=1.0, n_runs=2, verbose=False)
     assert res["chosen"] in {DEFAULT_RECIPES[0].name, "dyn"} and out.exists()
     assert [r["model"] for r in res["rows"]] == ["fp32", DEFAULT_RECIPES[0].name, "dyn"]
+
+
+def test_recipes_by_name_pins_the_search():
+    rs = recipes_by_name(["u8s8_qdq_conv_gemm", "dynamic_matmul", "u8s8_qdq_conv_gemm"])
+    assert [r.name for r in rs] == ["u8s8_qdq_conv_gemm", "dynamic_matmul"]
+    assert all(r in DEFAULT_RECIPES for r in rs)
+    with pytest.raises(ValueError, match="fp4.*known: u8s8_qdq_all"):
+        recipes_by_name(["fp4"])
 
 
 @pytest.mark.slow

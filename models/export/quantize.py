@@ -25,7 +25,7 @@ import onnx
 from monodbh.models.export.onnx_io import embed_spec, make_session, run_session
 from monodbh.models.modeling.registry import ModelSpec
 
-__all__ = ["QuantRecipe", "DEFAULT_RECIPES", "FLOAT_OP_TYPES", "quantize_int8", "benchmark",
+__all__ = ["QuantRecipe", "DEFAULT_RECIPES", "recipes_by_name", "FLOAT_OP_TYPES", "quantize_int8", "benchmark",
            "format_table", "search_int8", "metric_drop", "TABLE_COLUMNS", "preprocess_model"]
 
 #: Op types kept in float by default (numerically sensitive, little speed gain).
@@ -93,6 +93,25 @@ DEFAULT_RECIPES: tuple[QuantRecipe, ...] = (
     QuantRecipe("s8s8_conv+dynamic_matmul", mode="static+dynamic", op_types=("Conv",)),
     QuantRecipe("dynamic_matmul", mode="dynamic"),
 )
+
+
+
+def recipes_by_name(names: Sequence[str]) -> tuple[QuantRecipe, ...]:
+    """The :data:`DEFAULT_RECIPES` named in ``names``, in the order given.
+
+    Raises ``ValueError`` naming the unknown ones and the known names.
+
+    Examples
+    --------
+    >>> [r.name for r in recipes_by_name(["u8s8_qdq_conv_gemm"])]
+    ['u8s8_qdq_conv_gemm']
+    """
+    known = {r.name: r for r in DEFAULT_RECIPES}
+    unknown = [n for n in names if n not in known]
+    if unknown:
+        raise ValueError(f"unknown int8 recipe(s) {', '.join(unknown)}; known: {', '.join(known)}")
+    return tuple(known[n] for n in dict.fromkeys(names))
+
 
 TABLE_COLUMNS: tuple[str, ...] = ("model", "recipe", "size_mb", "latency_ms", "latency_p90_ms",
                                   "speedup", "rel_l2", "metric", "drop", "pass")
