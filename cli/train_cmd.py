@@ -100,8 +100,7 @@ def export(
     try:
         recipes = recipes_by_name(recipe) if recipe else None
     except ValueError as e:
-        typer.echo(f"error: {e}", err=True)
-        raise typer.Exit(2)
+        raise typer.BadParameter(str(e), param_hint="--recipe")
     export_run(run_dir, ship=ship, n_calib=n_calib, tolerance=tolerance, n_eval=n_eval,
                val_data=[str(p) for p in val] if val else None, force=force, recipes=recipes)
 

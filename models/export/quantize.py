@@ -25,8 +25,8 @@ import onnx
 from monodbh.models.export.onnx_io import embed_spec, make_session, run_session
 from monodbh.models.modeling.registry import ModelSpec
 
-__all__ = ["QuantRecipe", "DEFAULT_RECIPES", "recipes_by_name", "FLOAT_OP_TYPES", "quantize_int8", "benchmark",
-           "format_table", "search_int8", "metric_drop", "TABLE_COLUMNS", "preprocess_model"]
+__all__ = ["QuantRecipe", "DEFAULT_RECIPES", "recipes_by_name", "FLOAT_OP_TYPES", "quantize_int8",
+           "benchmark", "format_table", "search_int8", "metric_drop", "TABLE_COLUMNS", "preprocess_model"]
 
 #: Op types kept in float by default (numerically sensitive, little speed gain).
 FLOAT_OP_TYPES: tuple[str, ...] = ("LayerNormalization", "Softmax", "Gelu", "Erf", "Sigmoid",
@@ -93,7 +93,6 @@ DEFAULT_RECIPES: tuple[QuantRecipe, ...] = (
     QuantRecipe("s8s8_conv+dynamic_matmul", mode="static+dynamic", op_types=("Conv",)),
     QuantRecipe("dynamic_matmul", mode="dynamic"),
 )
-
 
 
 def recipes_by_name(names: Sequence[str]) -> tuple[QuantRecipe, ...]:
