@@ -32,6 +32,8 @@ def synth(
     contact: bool = typer.Option(False, "--contact-sheet", help="Also write OUT/contact_sheet.png (16 samples)."),
     marker: str = typer.Option("rope", "--marker", help="The 1.3 m marker: rope (5-15 mm, the default), strap "
                                "(a flat red strap 20-50 mm wide) or mixed (either)."),
+    stand: str = typer.Option("forest", "--stand", help="forest (a closed stand, the default), park (open-grown "
+                              "trees with dense crowns on a lawn, seen from 3-25 m) or mixed (either)."),
     look: str = typer.Option("default", "--look", help="default; randomized: the same scenes with their colours, "
                              "texture contrast, light and camera response randomised (for training); or heldout: "
                              "the same scenes with textures cut from the real photos, another light and another "
@@ -49,6 +51,8 @@ def synth(
     W, H = parse_size(size)
     if marker not in ("rope", "strap", "mixed"):
         raise typer.BadParameter(f"expected rope, strap or mixed, got {marker!r}", param_hint="--marker")
+    if stand not in ("forest", "park", "mixed"):
+        raise typer.BadParameter(f"expected forest, park or mixed, got {stand!r}", param_hint="--stand")
     from monodbh.models.synthetic.looks import HELDOUT, LOOKS
     if look not in LOOKS:
         raise typer.BadParameter(f"expected one of {', '.join(LOOKS)}, got {look!r}", param_hint="--look")
@@ -65,7 +69,7 @@ def synth(
                   TimeRemainingColumn(), transient=True) as prog:
         task = prog.add_task(f"rendering {W}x{H}", total=count)
         res = synthesize(out, count, seed, (W, H), start=start, workers=workers or None,
-                         distortion=not no_distortion, marker=marker, look=look, progress=lambda r: prog.advance(task))
+                         distortion=not no_distortion, marker=marker, look=look, stand=stand, progress=lambda r: prog.advance(task))
     typer.echo(f"{res['count']} samples in {res['seconds']:.1f} s ({res['samples_per_s']:.2f} samples/s) -> {out}",
                err=True)
     if contact:

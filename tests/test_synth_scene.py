@@ -241,3 +241,33 @@ def test_a_strap_marker_is_a_wide_flat_red_band_in_the_rope_mask():
 def test_an_unknown_marker_is_refused():
     with pytest.raises(ValueError, match="marker must be one of"):
         generate_sample(21, 0, (64, 48), marker="tape")
+
+
+def test_a_park_scene_is_open_grown_and_leaves_forest_scenes_alone():
+    """``stand="park"``: the roped tree open-grown (low, dense crown) on a lawn, a few trees far
+    apart, the camera 3-25 m away; ``"forest"`` scenes are the same whatever the other stands draw."""
+    from monodbh.models.synthetic.scene import sample_scene
+    forest = generate_sample(31, 0, (160, 120))
+    assert forest["meta"]["stand"] == "forest"
+    again = generate_sample(31, 0, (160, 120), stand="forest")
+    assert np.array_equal(forest["rgb"], again["rgb"])
+    for i in range(4):
+        s = generate_sample(31, i, (320, 240), stand="park")
+        m, sc = s["meta"], s["scene"]
+        assert m["stand"] == "park" and sc.ground["lawn"] > 0
+        main = sc.trees[0]
+        assert main.crown_density >= 4 and main.crown_base_m <= 5.5
+        d = np.hypot(*(sc.camera.t_wc[:2] - main.base[:2]))
+        assert 3.0 <= d <= 25.0
+        others = [np.hypot(*(t.base[:2] - main.base[:2])) for t in sc.trees[1:]]
+        assert all(o >= 9.0 for o in others) and len(sc.trees) <= 1 + 6 + 15
+        assert not any(r.is_rope for t in sc.trees[1:] for r in t.rings)
+        if m["rope"]:
+            assert m["rope"]["height_m"] == BREAST_HEIGHT_M
+        inst = s["instance"]
+        assert ((inst > 0) == (s["semantic"] == 3)).all()
+        assert (inst == 1).any()                      # the open-grown tree is in the picture
+    mixed = [sample_scene(np.random.default_rng(k), 64, 48, seed=k, stand="mixed") for k in range(12)]
+    assert 0 < sum("lawn" in sc.ground for sc in mixed) < 12
+    with pytest.raises(ValueError, match="stand must be one of"):
+        sample_scene(np.random.default_rng(0), 64, 48, stand="jungle")

@@ -185,7 +185,8 @@ def scene_meta(scene: Scene, out: dict) -> dict:
 
 
 def generate_sample(seed: int, index: int = 0, size: tuple[int, int] = (512, 512), *,
-                    distortion: bool = True, aa: bool = True, marker: str = "rope", look: str = "default") -> dict:
+                    distortion: bool = True, aa: bool = True, marker: str = "rope", look: str = "default",
+                    stand: str = "forest") -> dict:
     """Render one sample.
 
     Parameters
@@ -198,6 +199,7 @@ def generate_sample(seed: int, index: int = 0, size: tuple[int, int] = (512, 512
         :func:`~.scene.sample_scene`.
     look : ``"default"``, ``"randomized"`` (domain randomisation) or ``"heldout"`` (for evaluation
         only; no training path accepts it): the same scene with another appearance (:mod:`.looks`).
+    stand : ``"forest"`` (the default), ``"park"`` or ``"mixed"``; see :func:`~.scene.sample_scene`.
 
     Returns
     -------
@@ -210,10 +212,11 @@ def generate_sample(seed: int, index: int = 0, size: tuple[int, int] = (512, 512
         raise ValueError(f"image size {W}x{H} is too small (min 16x16)")
     s = sample_seed(seed, index)
     rng = np.random.default_rng(s)
-    scene = sample_scene(rng, W, H, distortion=distortion, seed=s, marker=marker)
+    scene = sample_scene(rng, W, H, distortion=distortion, seed=s, marker=marker, stand=stand)
     out = render_scene(scene, rng, look=look)
     out["meta"] = scene_meta(scene, out)
     out["meta"]["look"] = look
+    out["meta"]["stand"] = "park" if "lawn" in scene.ground else "forest"
     out["meta"]["dataset_seed"] = int(seed)
     out["meta"]["index"] = int(index)
     out["scene"] = scene

@@ -167,8 +167,8 @@ def _crown(tree: Tree, rng):
     top = tree.height_m
     cb = tree.crown_base_m
     L = top - cb
-    lod_per = (55, 28, 12)[tree.lod]
-    size = (0.3, 0.55, 1.0)[tree.lod] * float(np.clip(tree.r_bh / 0.12, 0.3, 1.0))
+    lod_per = int(round((55, 28, 12)[tree.lod] * tree.crown_density ** 0.5))
+    size = (0.3, 0.55, 1.0)[tree.lod] * float(np.clip(tree.r_bh / 0.12, 0.3, 1.0)) * tree.leaf_scale
     if sp_conifer and tree.species == "spruce":
         nc = (40, 20, 8)[tree.lod]
         s = cb + L * rng.random(nc) ** 0.8
@@ -180,7 +180,7 @@ def _crown(tree: Tree, rng):
              + off[:, None] * (np.cos(ang)[:, None] * tree.e1[None] + np.sin(ang)[:, None] * tree.e2[None]))
         r = np.maximum(0.25, rad * 0.55)
     else:
-        nc = (36, 18, 8)[tree.lod]
+        nc = int(round((36, 18, 8)[tree.lod] * tree.crown_density ** 0.5))
         u = rng.normal(size=(nc, 3))
         u /= norm_rows(u, keepdims=True)
         u *= rng.random(nc)[:, None] ** 0.4

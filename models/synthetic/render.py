@@ -262,7 +262,13 @@ class _Shader:
         w_moss = np.clip((c1 - 0.55) * 5, 0, 1)[:, None]
         w_soil = np.clip((c2 - 0.7) * 5, 0, 1)[:, None]
         alb = litter * (1 - w_moss) + moss * w_moss
-        return alb * (1 - w_soil) + soil * w_soil
+        alb = alb * (1 - w_soil) + soil * w_soil
+        lawn = float(self.scene.ground.get("lawn", 0.0))
+        if lawn > 0:                                     # park scenes: mown grass, a few bare patches
+            grass = np.array([0.07, 0.16, 0.03]) * (0.75 + 0.5 * c3[:, None]) * (0.8 + 0.4 * c1[:, None])
+            w = lawn * np.clip(1.0 - (c2 - 0.72) * 6, 0, 1)[:, None]
+            alb = alb * (1 - w) + grass * w
+        return alb
 
     def _foliage_albedo(self, base: np.ndarray, prim: np.ndarray, p: np.ndarray) -> np.ndarray:
         """Albedo (N, 3) of leaf, bush and grass hits: the objects' colours ``base`` (N, 3) varied

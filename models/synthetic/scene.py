@@ -118,6 +118,8 @@ class Tree:
     crown_base_m: float
     crown_radius_m: float
     lod: int                    # 0 near/detailed, 1 mid, 2 far
+    crown_density: float = 1.0  # leaf clusters and leaves per cluster, relative (open-grown: 4-10)
+    leaf_scale: float = 1.0     # leaf size, relative (open-grown: 1.3-2.2, clumps of leaves)
     bark_tint: tuple = (1.0, 1.0, 1.0)
     leaf_rgb: tuple = (0.08, 0.16, 0.04)
     dead: bool = False          # a dead snag: no foliage
@@ -294,12 +296,14 @@ def _tape_color(rng):
 
 #: the kinds of 1.3 m marker the generator renders (``sample_scene(marker=...)``)
 MARKERS = ("rope", "strap", "mixed")
+#: the kinds of stand the generator renders (``sample_scene(stand=...)``)
+STANDS = ("forest", "park", "mixed")
 #: a strap's width along the stem (m): flagging tape wound in a few turns or webbing
 STRAP_WIDTH_RANGE_M = (0.02, 0.05)
 
 
 def sample_scene(rng: np.random.Generator, width: int, height: int, *, distortion: bool = True,
-                 seed: int = 0, marker: str = "rope") -> Scene:
+                 seed: int = 0, marker: str = "rope", stand: str = "forest") -> Scene:
     """Sample a random forest scene and a handheld camera looking at a (usually roped) tree.
 
     Parameters
@@ -311,6 +315,10 @@ def sample_scene(rng: np.random.Generator, width: int, height: int, *, distortio
         strap of :data:`STRAP_WIDTH_RANGE_M` (2 mm thick), or either at random. The strap's
         draws come from their own generator, so a scene differs from its ``"rope"`` twin in the
         marker only.
+    stand : ``"forest"`` (the default: a closed stand of poles and sparse crowns), ``"park"``
+        (open-grown trees with dense, low crowns on a lawn, seen from 3-25 m, as in most openly
+        licensed tree photos; :func:`_to_park`) or ``"mixed"`` (either, half and half). The park's
+        draws come from their own generator, so ``"forest"`` scenes are the same with any value.
 
     Returns
     -------
@@ -318,6 +326,8 @@ def sample_scene(rng: np.random.Generator, width: int, height: int, *, distortio
     """
     if marker not in MARKERS:
         raise ValueError(f"marker must be one of {MARKERS}, got {marker!r}")
+    if stand not in STANDS:
+        raise ValueError(f"stand must be one of {STANDS}, got {stand!r}")
     slope = rng.normal(0, 0.04, 2) * (rng.random() < 0.7)
     waves = np.array([[rng.uniform(0, 0.25), rng.normal(0, 0.15), rng.normal(0, 0.15), rng.uniform(0, 6.3)]
                       for _ in range(3)])
@@ -527,9 +537,111 @@ def sample_scene(rng: np.random.Generator, width: int, height: int, *, distortio
                   haze_rgb=np.array([0.6, 0.66, 0.72]) * rng.uniform(0.6, 1.1),
                   exposure=float(np.exp(rng.normal(0, 0.25))),
                   wb=np.exp(rng.normal(0, 0.05, 3)))
-    return Scene(trees=trees, camera=cam, light=light, ground=ground, roped_tree=roped,
-                 bushes=bushes, grass=grass, logs=logs, person=person,
-                 distractors=distractors, seed=seed)
+    scene = Scene(trees=trees, camera=cam, light=light, ground=ground, roped_tree=roped,
+                  bushes=bushes, grass=grass, logs=logs, person=person,
+                  distractors=distractors, seed=seed)
+    prng = np.random.default_rng([int(seed), 7001])
+    if stand == "park" or (stand == "mixed" and prng.random() < 0.5):
+        _to_park(scene, prng)
+    return scene
+
+
+def _open_grown(t: Tree, rng, scale: float = 1.0) -> None:
+    """Make ``t`` an open-grown tree: a low, wide, dense crown (in place)."""
+    t.height_m = float(rng.uniform(9.0, 24.0) * scale)
+    t.crown_base_m = float(rng.uniform(2.2, 5.5))
+    t.crown_radius_m = float(np.clip(t.r_bh * 2 * rng.uniform(10, 22), 2.5, 9.0) * scale)
+    t.crown_density = float(rng.uniform(4.0, 10.0))
+    t.leaf_scale = float(rng.uniform(1.3, 2.2))
+    t.dead = False
+    t.leaf_rgb = tuple(np.array([rng.uniform(0.04, 0.20), rng.uniform(0.12, 0.30), rng.uniform(0.01, 0.06)]))
+    nb = int(rng.integers(4, 10))
+    t.branches = [(float(rng.uniform(t.crown_base_m * 0.8, t.crown_base_m + 0.5 * (t.height_m - t.crown_base_m))),
+                   float(rng.uniform(0, 2 * np.pi)), float(np.deg2rad(rng.uniform(5, 55))),
+                   float(rng.uniform(0.4, 0.9) * t.crown_radius_m), float(max(0.02, rng.uniform(0.25, 0.5) * t.r_bh)))
+                  for _ in range(nb)]
+
+
+def _to_park(scene: Scene, rng) -> None:
+    """Turn a sampled forest scene into a park scene, in place: the main tree open-grown, a few
+    other open-grown trees far apart, a distant tree line, a lawn, and the camera stepped back
+    3-25 m and aimed so that the foot and much of the crown are in view. Draws only from ``rng``.
+    """
+    main = scene.trees[0]
+    if rng.random() < 0.7:                               # park trees are mostly big
+        k = float(rng.uniform(1.0, 2.2))
+        main.r_bh = float(min(main.r_bh * k, 0.5))
+        main._perimeter_cache = {}
+    main.species = str(rng.choice(["beech", "oak", "maple", "oak", "maple", "birch", "pine"]))
+    _open_grown(main, rng)
+    main.lod = 0
+    cam = scene.camera
+    dist_h = float(np.exp(rng.uniform(np.log(3.0), np.log(25.0))))
+    cam_az = rng.uniform(0, 2 * np.pi)
+    cam_xy = main.base[:2] + dist_h * np.array([np.cos(cam_az), np.sin(cam_az)])
+    cam_h = float(rng.uniform(1.2, 1.8))
+    cam_pos = np.array([cam_xy[0], cam_xy[1], float(ground_height(scene.ground, *cam_xy)) + cam_h])
+    # other trees: a few, far from the main one; a tree line beyond it
+    keep = [main]
+    others = [t for t in scene.trees[1:] if t.r_bh > 0.04]
+    rng.shuffle(others)
+    for t in others[:int(rng.integers(0, 7))]:
+        ang = rng.uniform(0, 2 * np.pi)
+        xy = main.base[:2] + rng.uniform(9.0, 35.0) * np.array([np.cos(ang), np.sin(ang)])
+        if np.hypot(*(xy - cam_xy)) < 4.0:
+            continue
+        _place(t, xy, scene.ground)
+        _open_grown(t, rng, scale=float(rng.uniform(0.6, 1.1)))
+        keep.append(t)
+    if rng.random() < 0.8:
+        back = main.base[:2] - cam_xy
+        back = back / np.linalg.norm(back)
+        side = np.array([-back[1], back[0]])
+        d_line = float(rng.uniform(30.0, 60.0))
+        for t in others[7:7 + int(rng.integers(6, 16))]:
+            xy = cam_xy + back * (dist_h + d_line + rng.normal(0, 4.0)) + side * rng.uniform(-45, 45)
+            _place(t, xy, scene.ground)
+            _open_grown(t, rng, scale=float(rng.uniform(0.7, 1.2)))
+            keep.append(t)
+    for i, t in enumerate(keep):
+        t.id = i + 1
+        if i:
+            t.lod = 1 if np.hypot(*(t.base[:2] - cam_xy)) < 18 else 2
+            t.rings = [r for r in t.rings if not r.is_rope]
+            t.paint = None
+    scene.trees = keep
+    scene.distractors = [d for d in scene.distractors if d.get("kind") in ("red_leaves", "red_jacket")]
+    scene.bushes = [b for b in scene.bushes if rng.random() < 0.4]
+    scene.grass = []
+    scene.logs = [] if rng.random() < 0.8 else scene.logs
+    scene.ground["lawn"] = float(rng.uniform(0.6, 1.0))
+    # the camera: stepped back and aimed at the foot-to-crown span
+    W, H = cam.width, cam.height
+    K = cam.K
+    f = K[0, 0]
+    for _attempt in range(50):
+        target = main.axis_point(rng.uniform(1.0, min(main.crown_base_m + 2.0, 6.0)))
+        pitch = np.deg2rad(rng.uniform(-5, 28))
+        roll = np.deg2rad(rng.uniform(-4, 4))
+        rel = target - cam_pos
+        yaw = np.arctan2(rel[1], rel[0]) + np.arctan((rng.uniform(0.2, 0.8) - 0.5) * W / f)
+        Rwc = _rotation(yaw, pitch, roll)
+        pts = np.stack([main.axis_point(BREAST_HEIGHT_M), target])
+        pc = (pts - cam_pos) @ Rwc
+        if np.any(pc[:, 2] <= 0.5):
+            continue
+        u = K[0, 0] * pc[:, 0] / pc[:, 2] + K[0, 2]
+        v = K[1, 1] * pc[:, 1] / pc[:, 2] + K[1, 2]
+        if np.all((0.08 * W < u) & (u < 0.92 * W) & (0.08 * H < v) & (v < 0.92 * H)):
+            break
+    scene.camera = Camera(width=W, height=H, K=K, dist=cam.dist, R_wc=Rwc, t_wc=cam_pos, height_m=cam_h,
+                          pitch_deg=float(np.rad2deg(pitch)), roll_deg=float(np.rad2deg(roll)),
+                          yaw_deg=float(np.rad2deg(yaw)))
+
+
+def _place(t: Tree, xy, ground) -> None:
+    """Move tree ``t``'s base to ground point ``xy`` (in place)."""
+    t.base = np.array([xy[0], xy[1], float(ground_height(ground, xy[0], xy[1]))])
 
 
 def _rotation(yaw: float, pitch: float, roll: float) -> np.ndarray:
