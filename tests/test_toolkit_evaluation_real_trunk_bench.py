@@ -33,6 +33,22 @@ def test_iou_within_the_outlines_rows_counts_a_merged_neighbour_not_the_crown():
     assert rb.score_trunk(trunk, inst, inst > 0)["iou"] == pytest.approx(1.0)
 
 
+def test_local_iou_leaves_out_a_crown_beyond_one_trunk_width_but_not_a_merged_neighbour():
+    trunk = rb.rasterize([[20, 30], [39, 30], [39, 99], [20, 99]], (100, 100))
+    inst = np.zeros((100, 100), np.uint16)
+    inst[30:, 20:40] = 1
+    inst[30:40, 65:95] = 1                   # crown hanging down beside the trunk, 25 px out
+    s = rb.score_trunk(trunk, inst, inst > 0)
+    assert s["iou"] == pytest.approx(1400 / (1400 + 300))
+    assert s["iou_local"] == pytest.approx(1.0)
+    inst[30:40, 45:55] = 1                   # within one trunk width of its edge: counts
+    s = rb.score_trunk(trunk, inst, inst > 0)
+    assert s["iou_local"] == pytest.approx(1400 / (1400 + 100))
+    merged = _scene()
+    s = rb.score_trunk(trunk[:, :60], merged, merged > 0)
+    assert s["iou_local"] == pytest.approx(s["iou"])    # the neighbour lies within the window
+
+
 def test_missed_pixels_are_named_and_the_summary_keeps_wide_trunks():
     trunk = rb.rasterize([[20, 30], [39, 30], [39, 99], [20, 99]], (60, 100))
     inst = np.zeros((100, 60), np.uint16)

@@ -554,7 +554,11 @@ def _open_grown(t: Tree, rng, scale: float = 1.0) -> None:
     t.crown_density = float(rng.uniform(4.0, 10.0))
     t.leaf_scale = float(rng.uniform(1.3, 2.2))
     t.dead = False
-    t.leaf_rgb = tuple(np.array([rng.uniform(0.04, 0.20), rng.uniform(0.12, 0.30), rng.uniform(0.01, 0.06)]))
+    if rng.random() < 0.5:                               # dark summer green
+        t.leaf_rgb = tuple(np.array([rng.uniform(0.04, 0.20), rng.uniform(0.12, 0.30), rng.uniform(0.01, 0.06)]))
+    else:                                                # light, yellowish spring or sunlit green
+        g = rng.uniform(0.15, 0.45)
+        t.leaf_rgb = (g * rng.uniform(0.3, 0.8), g, g * rng.uniform(0.05, 0.25))
     nb = int(rng.integers(4, 10))
     t.branches = [(float(rng.uniform(t.crown_base_m * 0.8, t.crown_base_m + 0.5 * (t.height_m - t.crown_base_m))),
                    float(rng.uniform(0, 2 * np.pi)), float(np.deg2rad(rng.uniform(5, 55))),

@@ -184,11 +184,16 @@ def main(argv=None) -> int:
     ap.add_argument("--out-dir", type=Path, default=Path("runs/real_width"), help="painted photos and rows.json")
     ap.add_argument("--outlines", type=Path, default=OUTLINES)
     ap.add_argument("--seed", type=int, default=26)
+    ap.add_argument("--models-dir", type=Path, help="networks other than the shipped ones (a models folder)")
     a = ap.parse_args(argv)
     if not a.folder.is_dir():
         print(f"error: {a.folder}: not a folder", file=sys.stderr)
         return 2
-    rows = run(a.folder, a.out_dir, load_outlines(a.outlines), seed=a.seed)
+    session = None
+    if a.models_dir is not None:
+        from monodbh.toolkit.pipeline import Session
+        session = Session(a.models_dir)
+    rows = run(a.folder, a.out_dir, load_outlines(a.outlines), seed=a.seed, session=session)
     (a.out_dir / "rows.json").write_text(json.dumps(rows, indent=1))
     from rich.console import Console
     from rich.table import Table
