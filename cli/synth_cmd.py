@@ -48,11 +48,14 @@ def synth(
         raise typer.Exit(1)
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeRemainingColumn
 
+    from monodbh.models.synthetic.scene import MARKERS, STANDS
     W, H = parse_size(size)
-    if marker not in ("rope", "strap", "mixed"):
-        raise typer.BadParameter(f"expected rope, strap or mixed, got {marker!r}", param_hint="--marker")
-    if stand not in ("forest", "park", "mixed"):
-        raise typer.BadParameter(f"expected forest, park or mixed, got {stand!r}", param_hint="--stand")
+    if marker not in MARKERS:
+        raise typer.BadParameter(f"expected {', '.join(MARKERS[:-1])} or {MARKERS[-1]}, got {marker!r}",
+                                 param_hint="--marker")
+    if stand not in STANDS:
+        raise typer.BadParameter(f"expected {', '.join(STANDS[:-1])} or {STANDS[-1]}, got {stand!r}",
+                                 param_hint="--stand")
     from monodbh.models.synthetic.looks import HELDOUT, LOOKS
     if look not in LOOKS:
         raise typer.BadParameter(f"expected one of {', '.join(LOOKS)}, got {look!r}", param_hint="--look")

@@ -216,7 +216,7 @@ def generate_sample(seed: int, index: int = 0, size: tuple[int, int] = (512, 512
     out = render_scene(scene, rng, look=look)
     out["meta"] = scene_meta(scene, out)
     out["meta"]["look"] = look
-    out["meta"]["stand"] = "park" if "lawn" in scene.ground else "forest"
+    out["meta"]["stand"] = scene.stand
     out["meta"]["dataset_seed"] = int(seed)
     out["meta"]["index"] = int(index)
     out["scene"] = scene

@@ -219,6 +219,7 @@ class Scene:
     distractors: list
     seed: int
     textures: dict = field(default_factory=dict)
+    stand: str = "forest"       # "forest" or "park" (:data:`STANDS`; "mixed" picks one per scene)
 
 
 # --------------------------------------------------------------------------- sampling
@@ -619,6 +620,7 @@ def _to_park(scene: Scene, rng) -> None:
     scene.grass = []
     scene.logs = [] if rng.random() < 0.8 else scene.logs
     scene.ground["lawn"] = float(rng.uniform(0.6, 1.0))
+    scene.stand = "park"
     # the camera: stepped back and aimed at the foot-to-crown span
     W, H = cam.width, cam.height
     K = cam.K
