@@ -115,6 +115,7 @@ def test_export_run_writes_report_and_ships(tmp_path):
     assert (models / e["file"]).exists() and len(e["sha256"]) == 64
     assert e["inputs"][0] == {"name": "image", "shape": [1, 3, 64, 64], "dtype": "float32"}
     assert e["classes"][3] == "tree" and e["training"]["steps"] == 1
+    assert e["training"]["augment"] == json.loads((run / "config.json").read_text())["aug"]
     assert set(e["validation"]) == {"fp32", "int8"} and e["latency_ms"]["int8"] > 0
     assert e["preprocess"][0]["mean"] == pytest.approx([0.485, 0.456, 0.406])
     # exporting again scores the shipped model on the same data first (equal: shipped again)

@@ -210,6 +210,7 @@ def export_run(run_dir: str | os.PathLike, ship: bool = False, n_calib: int = 32
                      "total_steps": int(ckpt.get("step", config.get("steps", 0)))
                      + int((config.get("init_weights") or {}).get("from_step") or 0),
                      "data": config.get("data"), "val_data": config.get("val_data"),
+                     **({"augment": config["aug"]} if config.get("aug") else {}),
                      **({"blend": config["blend"]} if config.get("blend") else {})},
         "fp32": {"path": str(fp32_path), "check": check, "metrics": fp32_row.get("metrics", {}),
                  "latency_ms": fp32_row.get("latency_ms"),
