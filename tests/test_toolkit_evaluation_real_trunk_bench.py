@@ -103,3 +103,35 @@ def test_another_segmenter_file_is_scored(shared_data, tmp_path):
     a, b = json.loads(out.read_text()), json.loads((tmp_path / "b.json").read_text())
     assert {r["photo"] for r in a["rows"]} == set(names)
     assert a["summary"] == b["summary"]
+
+
+def test_crop_is_a_square_around_the_trunk_inside_the_photo():
+    m = np.zeros((100, 60), bool)
+    m[40:60, 5:15] = True
+    assert rb.crop_around(m, 0.4) == (0, 30, 40, 70)          # shifted right to stay inside
+    assert rb.crop_around(m, 1.0) == (0, 0, 60, 100)          # cut to the photo
+    with pytest.raises(ValueError, match="crop fraction"):
+        rb.crop_around(m, 0.0)
+
+
+class _CropSegmenter:
+    """Calls "tree" the pixels darker than 50 of whatever it is given (so it sees the crop)."""
+    tree_class, classes = 3, ("sky", "ground", "other_vegetation", "tree", "other")
+
+    def predict(self, rgb, size):
+        from types import SimpleNamespace
+        tree = rgb[..., 0] < 50
+        self.seen = rgb.shape
+        return SimpleNamespace(instance=tree.astype(np.int32), semantic=np.where(tree, 3, 1),
+                               tree_class=self.tree_class, classes=self.classes)
+
+
+def test_a_trunk_scored_in_its_crop_keeps_the_whole_outlines_width():
+    rgb = np.full((200, 120, 3), 200, np.uint8)
+    rgb[50:150, 40:60] = 10                               # the trunk: 20 px wide, 100 rows
+    poly = [[40, 50], [59, 50], [59, 149], [40, 149]]
+    seg = _CropSegmenter()
+    s = rb.score_trunk_in_crop(rgb, poly, seg, 0.3)
+    assert seg.seen[:2] == (60, 60)                       # 0.3 x 200 px, centred on the trunk
+    assert s["iou"] == pytest.approx(1.0) and s["pixel_recall"] == pytest.approx(1.0)
+    assert s["width_px"] == pytest.approx(20.0)           # the whole outline's, not the crop's part

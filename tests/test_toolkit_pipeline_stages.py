@@ -53,3 +53,43 @@ def test_a_tap_far_from_any_rope_is_refused_with_the_photos_pixel():
     instance = np.zeros(frame.shape, np.uint16)
     with pytest.raises(MonodbhError, match=r"at the picked point \(1500,1000\)"):
         _find_rope("p.jpg", frame, _Seg(instance), 8.0, _Request(pick_xy=(1500.0, 1000.0)), _Sess(), {})
+
+
+class _CropSeg:
+    """A segmenter stub: instance 7 on the columns 40-59 of the full image, seen through any crop."""
+
+    def __init__(self, x_offset_of):
+        self.x_offset_of, self.calls = x_offset_of, []
+
+    def predict(self, rgb, size):
+        from types import SimpleNamespace
+        self.calls.append((rgb.shape, size))
+        x0 = self.x_offset_of(rgb)
+        inst = np.zeros(rgb.shape[:2], np.int32)
+        cols = np.arange(rgb.shape[1]) + x0
+        inst[:, (cols >= 40) & (cols < 60)] = 7
+        return SimpleNamespace(instance=inst)
+
+
+def test_the_zoomed_edge_mask_is_the_stem_under_the_rope_in_a_crop_around_it():
+    from types import SimpleNamespace
+
+    from monodbh.toolkit.pipeline import _zoomed_stem_mask
+    H, W = 200, 300
+    img = np.tile(np.arange(W, dtype=np.uint8)[None, :, None], (H, 1, 3))   # column index as colour
+    frame = SimpleNamespace(shape=(H, W), image=img)
+    seg = _CropSeg(lambda rgb: int(rgb[0, 0, 0]))
+    sess = SimpleNamespace(segmenter=seg)
+    m = _zoomed_stem_mask(sess, frame, (50.0, 100.0), 0.3)
+    (shape, size), = seg.calls
+    assert shape[:2] == (90, 90) and size == (90, 90)          # 0.3 x 300 px, square
+    ys, xs = np.nonzero(m)
+    assert xs.min() == 40 and xs.max() == 59                    # mapped back to the photo's columns
+    assert ys.min() == 55 and ys.max() == 144                   # the crop's rows only
+    assert _zoomed_stem_mask(sess, frame, (150.0, 100.0), 0.3) is None    # no stem under the rope
+
+
+def test_edge_mask_zoom_is_checked():
+    assert MeasureConfig(edge_mask_zoom=None).edge_mask_zoom is None
+    with pytest.raises(ValueError, match="edge_mask_zoom"):
+        MeasureConfig(edge_mask_zoom=0.0)

@@ -41,6 +41,9 @@ class MeasureConfig:
     sideways_score_max : a photo whose light comes from a side by more than this
         (:func:`~monodbh.toolkit.orientation.sideways_score` below it, gray levels) is flagged
         ``photo_maybe_sideways`` (docs/decisions/sideways-photo.md).
+    edge_mask_zoom : the mask that guides the search for the roped stem's edges at the rope comes
+        from a second segmenter pass on a square crop around the rope, this fraction of the working
+        image's long side (None: the whole photo's mask; docs/decisions/zoomed-edge-mask.md).
     rope : the rope cascade's parameters (:class:`~monodbh.toolkit.rope.config.RopeConfig`).
     geometry : the geometry's parameters (:class:`~monodbh.toolkit.geometry.config.GeometryConfig`):
         up direction, stem base, scale candidates and their combination, sigma, DBH.
@@ -53,5 +56,10 @@ class MeasureConfig:
     stem_base_threshold: float = 0.7
     ort_spin: bool = field(default_factory=lambda: os.environ.get("MONODBH_ORT_SPIN", "0") == "1")
     sideways_score_max: float = -60.0
+    edge_mask_zoom: float | None = 0.3
     rope: RopeConfig = field(default_factory=RopeConfig)
     geometry: GeometryConfig = field(default_factory=GeometryConfig)
+
+    def __post_init__(self) -> None:
+        if self.edge_mask_zoom is not None and not 0.0 < self.edge_mask_zoom <= 1.0:
+            raise ValueError(f"edge_mask_zoom must be in (0, 1] or None, got {self.edge_mask_zoom}")

@@ -361,18 +361,46 @@ class _TreeSilhouette:
         return z1, z2
 
 
+def _zoomed_stem_mask(sess: Session, frame: WorkFrame, rope_xy, frac: float) -> np.ndarray | None:
+    """(H, W) bool mask of the roped stem from a second segmenter pass on a square crop of side
+    ``frac`` x the working image's long side centred on ``rope_xy`` (kept inside the image): the
+    instance under most of the pixels within 3 px of the rope's centre; None where there is none.
+    At the segmenter's 256 x 256 input the crop is seen 1/frac times finer than the whole photo
+    (docs/decisions/zoomed-edge-mask.md)."""
+    h, w = frame.shape
+    side = int(round(frac * max(h, w)))
+    cx, cy = int(round(float(rope_xy[0]))), int(round(float(rope_xy[1])))
+    x0 = max(0, min(w - min(side, w), cx - side // 2))
+    y0 = max(0, min(h - min(side, h), cy - side // 2))
+    x1, y1 = min(w, x0 + side), min(h, y0 + side)
+    inst = sess.segmenter.predict(np.ascontiguousarray(frame.image[y0:y1, x0:x1]), size=(x1 - x0, y1 - y0)).instance
+    px, py = cx - x0, cy - y0
+    win = inst[max(0, py - 3):max(0, py + 4), max(0, px - 3):max(0, px + 4)]
+    ids = win[win > 0].astype(np.int64)
+    if not ids.size:
+        return None
+    m = np.zeros((h, w), bool)
+    m[y0:y1, x0:x1] = inst == int(np.bincount(ids).argmax())
+    return m
+
+
 def _perception(frame: WorkFrame, choice: RopeChoice, stem: _Stem, ruler, ground_mask, depth_job,
                 silhouette: _TreeSilhouette, sess: Session, req: _Request) -> Perception:
     """Everything the geometry needs, in the working image."""
     rope = choice.rope
     cell = _mask_cell(sess, frame)
+    emask = None
+    if sess.config.edge_mask_zoom is not None:
+        emask = _zoomed_stem_mask(sess, frame, rope.center_xy, sess.config.edge_mask_zoom)
+    if emask is None:
+        emask = stem.tree_mask
     return Perception(
         rgb=frame.image, camera=frame.camera, rope_xy=np.asarray(rope.center_xy, float),
         rope_dir=np.asarray(rope.direction, float), rope_half_px=max(0.5, rope.thickness_px / 2),
         tree_mask=stem.tree_mask, ground_mask=ground_mask, depth_job=depth_job, depth_is_metric=False,
         silhouette_fn=silhouette, source="network",
         base_finder=None if sess.base is None else sess.base.find,
-        edge_search_px=max(3.0, 0.5 * cell), edge_mask=stem.tree_mask | stem.band_mask,
+        edge_search_px=max(3.0, 0.5 * cell), edge_mask=emask | stem.band_mask,
         sigma_network=sess.sigma_network, rank_network=sess.rank_network,
         distance_calibration=sess.distance_calibration,
         base_xy=None if req.base_xy is None else frame.to_work(req.base_xy),

@@ -20,12 +20,14 @@ area over its rows):
   instance), and what it calls the rest (ground, vegetation, sky, ...).
 
 ``--draw DIR`` writes each photo with its outlines (yellow), the predicted tree pixels (blue)
-and each trunk's IoU, to check the outlines and see the failures.
+and each trunk's IoU, to check the outlines and see the failures. ``--crop F`` segments, for each
+outlined trunk, a square crop of side ``F`` x the photo's long side centred on the trunk instead
+of the whole photo (:func:`score_trunk_in_crop`): how much a zoomed second pass would find.
 
 Usage::
 
     python -m monodbh.toolkit.evaluation.real_trunk_bench ../shared/data/real_trees [--draw runs/real_trunks] [--json F]
-        [--model OTHER_SEGMENTER.onnx]
+        [--model OTHER_SEGMENTER.onnx] [--crop 0.4]
 
 Imported by nothing (a command); imports the segmenter's runtime and ``monodbh.calib``.
 """
@@ -40,7 +42,7 @@ from typing import Optional, Sequence
 import numpy as np
 
 __all__ = ["OUTLINES", "MIN_WIDTH_PX", "FOUND_IOU", "load_outlines", "rasterize", "score_trunk",
-           "score_photo", "summarise", "main"]
+           "score_photo", "crop_around", "score_trunk_in_crop", "summarise", "main"]
 
 #: the outlines shipped with this module
 OUTLINES = Path(__file__).resolve().parent / "data" / "real_trees_outlines.json"
@@ -144,6 +146,43 @@ def score_photo(rgb: np.ndarray, entry: dict, segmenter) -> tuple[list[dict], ob
     return out, seg
 
 
+def crop_around(mask: np.ndarray, frac: float) -> tuple[int, int, int, int]:
+    """``(x0, y0, x1, y1)``: a square of side ``frac`` x the long side of ``mask`` (H, W) bool,
+    centred on the mask's centroid and shifted to lie inside the photo (cut to it where larger).
+
+    Examples
+    --------
+    >>> m = np.zeros((100, 60), bool); m[40:60, 5:15] = True
+    >>> crop_around(m, 0.4)
+    (0, 30, 40, 70)
+    """
+    if not 0 < frac <= 1:
+        raise ValueError(f"crop fraction must be in (0, 1], got {frac}")
+    H, W = mask.shape
+    ys, xs = np.nonzero(mask)
+    side = int(round(frac * max(H, W)))
+    cx, cy = int(round(xs.mean())), int(round(ys.mean()))
+    x0 = max(0, min(W - min(side, W), cx - side // 2))
+    y0 = max(0, min(H - min(side, H), cy - side // 2))
+    return x0, y0, min(W, x0 + side), min(H, y0 + side)
+
+
+def score_trunk_in_crop(rgb: np.ndarray, polygon, segmenter, frac: float) -> dict:
+    """:func:`score_trunk` of one outlined trunk, segmented in :func:`crop_around` (``frac``)
+    instead of the whole photo ``rgb`` (H, W, 3). The scores are of the trunk's part inside the
+    crop; ``width_px`` is the whole outline's, so that the same trunks are kept as without it."""
+    H, W = rgb.shape[:2]
+    trunk = rasterize(polygon, (W, H))
+    if not trunk.any():
+        return score_trunk(trunk, np.zeros((H, W), np.int32), np.zeros((H, W), bool))
+    x0, y0, x1, y1 = crop_around(trunk, frac)
+    seg = segmenter.predict(np.ascontiguousarray(rgb[y0:y1, x0:x1]), size=(x1 - x0, y1 - y0))
+    out = score_trunk(trunk[y0:y1, x0:x1], seg.instance, seg.semantic == seg.tree_class, seg.semantic,
+                      seg.classes)
+    out["width_px"] = float(trunk.sum()) / float(np.count_nonzero(trunk.any(1)))
+    return out
+
+
 def summarise(rows: Sequence[dict], min_width_px: float = MIN_WIDTH_PX) -> dict:
     """Mean IoU, recall (IoU >= :data:`FOUND_IOU`), mean pixel recall and what the missed
     pixels were called, over the trunks at least ``min_width_px`` wide."""
@@ -183,8 +222,10 @@ def _draw(rgb: np.ndarray, entry: dict, scores: Sequence[dict], seg, path: Path)
     cv2.imwrite(str(path), cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
 
 
-def run(folder: Path, outlines: dict, draw: Optional[Path] = None, segmenter=None) -> list[dict]:
-    """Score every outlined photo of ``folder``; a row per trunk (``photo`` added)."""
+def run(folder: Path, outlines: dict, draw: Optional[Path] = None, segmenter=None,
+        crop: Optional[float] = None) -> list[dict]:
+    """Score every outlined photo of ``folder``; a row per trunk (``photo`` added); with
+    ``crop``, each trunk in its own crop (:func:`score_trunk_in_crop`, no drawing)."""
     from monodbh.calib import load_photo
     from monodbh.models.runtime.segmenter import Segmenter
 
@@ -202,6 +243,11 @@ def run(folder: Path, outlines: dict, draw: Optional[Path] = None, segmenter=Non
         if [rgb.shape[1], rgb.shape[0]] != list(entry["size"]):
             print(f"{p}: {rgb.shape[1]}x{rgb.shape[0]} px, outlined at {entry['size']}, skipped")
             continue
+        if crop is not None:
+            rows += [{"photo": name, "trunk": i, "note": tr.get("note", ""),
+                      **score_trunk_in_crop(rgb, tr["polygon"], seg_net, crop)}
+                     for i, tr in enumerate(entry["trunks"])]
+            continue
         scores, seg = score_photo(rgb, entry, seg_net)
         rows += [{"photo": name, **s} for s in scores]
         if draw is not None:
@@ -217,12 +263,16 @@ def main(argv=None) -> int:
     ap.add_argument("--draw", type=Path, help="write <photo>_outlines.png here")
     ap.add_argument("--json", type=Path, help="write the per-trunk rows and the summary here")
     ap.add_argument("--model", type=Path, help="a segmenter ONNX file other than the shipped one")
+    ap.add_argument("--crop", type=float, metavar="F",
+                    help="segment a square crop of side F x the photo's long side around each trunk")
     a = ap.parse_args(argv)
+    if a.crop is not None and not 0 < a.crop <= 1:
+        ap.error(f"--crop must be in (0, 1], got {a.crop}")
     seg = None
     if a.model is not None:
         from monodbh.models.runtime.segmenter import Segmenter
         seg = Segmenter(a.model)
-    rows = run(a.folder, load_outlines(a.outlines), a.draw, segmenter=seg)
+    rows = run(a.folder, load_outlines(a.outlines), a.draw, segmenter=seg, crop=a.crop)
     print("| photo | trunks >= 20 px | mean IoU | found (IoU >= 0.5) | local IoU | found by it | pixel recall |\n"
           "|---|---|---|---|---|---|---|")
     for name in sorted({r["photo"] for r in rows}):
