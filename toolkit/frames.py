@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["WorkFrame", "work_frame", "rescale_intrinsics", "read_photo", "MIN_PHOTO_SIDE_PX"]
+__all__ = ["WorkFrame", "work_frame", "rescale_intrinsics", "read_photo", "square_crop", "MIN_PHOTO_SIDE_PX"]
 
 #: the shortest side of a photo the measuring path accepts (pixels): below it no trunk, rope or
 #: ground is resolved, and the camera's adaptation to the photo degenerates
@@ -29,6 +29,24 @@ def read_photo(path) -> np.ndarray:
     from ..calib import load_photo
 
     return load_photo(path, min_side_px=MIN_PHOTO_SIDE_PX)
+
+
+def square_crop(center_xy, frac: float, shape: tuple[int, int]) -> tuple[int, int, int, int]:
+    """``(x0, y0, x1, y1)``: a square of side ``frac`` x the long side of an image of ``shape``
+    (H, W), centred on ``center_xy`` (rounded to pixels) and shifted to lie inside the image (cut
+    to it where larger).
+
+    Examples
+    --------
+    >>> square_crop((10.0, 50.0), 0.4, (100, 60))
+    (0, 30, 40, 70)
+    """
+    H, W = shape
+    side = int(round(frac * max(H, W)))
+    cx, cy = int(round(float(center_xy[0]))), int(round(float(center_xy[1])))
+    x0 = max(0, min(W - min(side, W), cx - side // 2))
+    y0 = max(0, min(H - min(side, H), cy - side // 2))
+    return x0, y0, min(W, x0 + side), min(H, y0 + side)
 
 
 def rescale_intrinsics(K: np.ndarray, sx: float, sy: float, *, inverse: bool = False) -> np.ndarray:

@@ -23,7 +23,7 @@ import numpy as np
 
 from ..calib.errors import MonodbhError
 from .config import MeasureConfig
-from .frames import WorkFrame, read_photo, work_frame
+from .frames import WorkFrame, read_photo, square_crop, work_frame
 from .orientation import sideways_score
 from .geometry import Perception, measure_from_perception
 from .result import MeasureResult, PointCloud
@@ -368,13 +368,9 @@ def _zoomed_stem_mask(sess: Session, frame: WorkFrame, rope_xy, frac: float) -> 
     At the segmenter's 256 x 256 input the crop is seen 1/frac times finer than the whole photo
     (docs/decisions/zoomed-edge-mask.md)."""
     h, w = frame.shape
-    side = int(round(frac * max(h, w)))
-    cx, cy = int(round(float(rope_xy[0]))), int(round(float(rope_xy[1])))
-    x0 = max(0, min(w - min(side, w), cx - side // 2))
-    y0 = max(0, min(h - min(side, h), cy - side // 2))
-    x1, y1 = min(w, x0 + side), min(h, y0 + side)
+    x0, y0, x1, y1 = square_crop(rope_xy, frac, (h, w))
     inst = sess.segmenter.predict(np.ascontiguousarray(frame.image[y0:y1, x0:x1]), size=(x1 - x0, y1 - y0)).instance
-    px, py = cx - x0, cy - y0
+    px, py = int(round(float(rope_xy[0]))) - x0, int(round(float(rope_xy[1]))) - y0
     win = inst[max(0, py - 3):max(0, py + 4), max(0, px - 3):max(0, px + 4)]
     ids = win[win > 0].astype(np.int64)
     if not ids.size:

@@ -156,15 +156,12 @@ def crop_around(mask: np.ndarray, frac: float) -> tuple[int, int, int, int]:
     >>> crop_around(m, 0.4)
     (0, 30, 40, 70)
     """
+    from monodbh.toolkit.frames import square_crop
+
     if not 0 < frac <= 1:
         raise ValueError(f"crop fraction must be in (0, 1], got {frac}")
-    H, W = mask.shape
     ys, xs = np.nonzero(mask)
-    side = int(round(frac * max(H, W)))
-    cx, cy = int(round(xs.mean())), int(round(ys.mean()))
-    x0 = max(0, min(W - min(side, W), cx - side // 2))
-    y0 = max(0, min(H - min(side, H), cy - side // 2))
-    return x0, y0, min(W, x0 + side), min(H, y0 + side)
+    return square_crop((xs.mean(), ys.mean()), frac, mask.shape)
 
 
 def score_trunk_in_crop(rgb: np.ndarray, polygon, segmenter, frac: float) -> dict:
