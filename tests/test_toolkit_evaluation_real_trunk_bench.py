@@ -135,3 +135,39 @@ def test_a_trunk_scored_in_its_crop_keeps_the_whole_outlines_width():
     assert seg.seen[:2] == (60, 60)                       # 0.3 x 200 px, centred on the trunk
     assert s["iou"] == pytest.approx(1.0) and s["pixel_recall"] == pytest.approx(1.0)
     assert s["width_px"] == pytest.approx(20.0)           # the whole outline's, not the crop's part
+
+
+def test_tiles_cover_the_photo_half_a_tile_apart():
+    for length, side in ((100, 40), (101, 33), (960, 384), (50, 50)):
+        o = rb.tile_origins(length, side)
+        assert o[0] == 0 and o[-1] + side >= length and o == sorted(set(o))
+        assert all(b - a <= side // 2 for a, b in zip(o, o[1:]))
+
+
+class _TileSegmenter(_CropSegmenter):
+    """Calls "tree" the dark pixels, but only in images at most 100 px wide (a segmenter that
+    cannot see a thin trunk in the whole photo); counts its calls."""
+
+    def predict(self, rgb, size):
+        self.calls = getattr(self, "calls", 0) + 1
+        r = super().predict(rgb, size)
+        if rgb.shape[1] > 100:
+            r.instance = np.zeros_like(r.instance)
+            r.semantic = np.ones_like(r.semantic)
+        return r
+
+
+def test_a_trunk_missed_in_the_whole_photo_is_found_in_its_tiles():
+    rgb = np.full((200, 300, 3), 200, np.uint8)
+    rgb[20:180, 140:160] = 10                             # 20 px trunk the whole photo misses
+    poly = [[140, 20], [159, 20], [159, 179], [140, 179]]
+    entry = {"trunks": [{"polygon": poly}]}
+    seg = _TileSegmenter()
+    assert rb.score_photo(rgb, entry, seg)[0][0]["iou"] == 0.0
+    seg = _TileSegmenter()
+    s, out = rb.score_photo(rgb, entry, seg, tiles=0.3)  # 90 px tiles, 45 apart
+    assert seg.calls == 4 * 6 + 1                         # 4 x 6 tiles and the whole photo
+    assert s[0]["iou"] == pytest.approx(1.0) and out.instance.max() == 1
+    assert (out.semantic[rgb[..., 0] > 50] == 1).all()    # the rest keeps the whole photo's class
+    with pytest.raises(ValueError, match="tile fraction"):
+        rb.segment_tiled(rgb, seg, 1.5)

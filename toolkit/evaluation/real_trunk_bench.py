@@ -23,11 +23,15 @@ area over its rows):
 and each trunk's IoU, to check the outlines and see the failures. ``--crop F`` segments, for each
 outlined trunk, a square crop of side ``F`` x the photo's long side centred on the trunk instead
 of the whole photo (:func:`score_trunk_in_crop`): how much a zoomed second pass would find.
+``--tiles F`` segments the whole photo as overlapping square tiles of side ``F`` x its long side
+(half a tile apart, :func:`segment_tiled`), without knowing where the trunks are: a pixel is
+"tree" where at least half the tiles that hold it say so, and the instances are the connected
+parts of that mask (so touching trunks and crowns merge, which the IoU counts).
 
 Usage::
 
     python -m monodbh.toolkit.evaluation.real_trunk_bench ../shared/data/real_trees [--draw runs/real_trunks] [--json F]
-        [--model OTHER_SEGMENTER.onnx] [--crop 0.4]
+        [--model OTHER_SEGMENTER.onnx] [--crop 0.4 | --tiles 0.3]
 
 Imported by nothing (a command); imports the segmenter's runtime and ``monodbh.calib``.
 """
@@ -42,7 +46,8 @@ from typing import Optional, Sequence
 import numpy as np
 
 __all__ = ["OUTLINES", "MIN_WIDTH_PX", "FOUND_IOU", "load_outlines", "rasterize", "score_trunk",
-           "score_photo", "crop_around", "score_trunk_in_crop", "summarise", "main"]
+           "score_photo", "crop_around", "score_trunk_in_crop", "tile_origins", "segment_tiled",
+           "summarise", "main"]
 
 #: the outlines shipped with this module
 OUTLINES = Path(__file__).resolve().parent / "data" / "real_trees_outlines.json"
@@ -133,11 +138,13 @@ def score_trunk(trunk: np.ndarray, instance: np.ndarray, tree_pixels: np.ndarray
             "pixel_recall": float(np.count_nonzero(trunk & tree_pixels)) / area, "missed_as": missed}
 
 
-def score_photo(rgb: np.ndarray, entry: dict, segmenter) -> tuple[list[dict], object]:
-    """Segment ``rgb`` (H, W, 3) and score each outlined trunk of ``entry`` (all widths;
-    :func:`summarise` keeps the wide ones). Returns ``(scores, segmentation)``."""
+def score_photo(rgb: np.ndarray, entry: dict, segmenter,
+                tiles: Optional[float] = None) -> tuple[list[dict], object]:
+    """Segment ``rgb`` (H, W, 3) (whole, or with ``tiles`` by :func:`segment_tiled`) and score
+    each outlined trunk of ``entry`` (all widths; :func:`summarise` keeps the wide ones).
+    Returns ``(scores, segmentation)``."""
     H, W = rgb.shape[:2]
-    seg = segmenter.predict(rgb, size=(W, H))
+    seg = segment_tiled(rgb, segmenter, tiles) if tiles else segmenter.predict(rgb, size=(W, H))
     tree = seg.semantic == seg.tree_class
     out = []
     for i, tr in enumerate(entry["trunks"]):
@@ -180,6 +187,63 @@ def score_trunk_in_crop(rgb: np.ndarray, polygon, segmenter, frac: float) -> dic
     return out
 
 
+def tile_origins(length: int, side: int) -> list[int]:
+    """Start offsets of tiles of ``side`` px, half a tile apart, covering ``length`` px (the last
+    one flush with the end; one tile at 0 where ``side >= length``).
+
+    Examples
+    --------
+    >>> tile_origins(100, 40)
+    [0, 20, 40, 60]
+    >>> tile_origins(100, 45)
+    [0, 22, 44, 55]
+    >>> tile_origins(30, 40)
+    [0]
+    """
+    if side >= length:
+        return [0]
+    step = max(1, side // 2)
+    out = list(range(0, length - side + 1, step))
+    if out[-1] + side < length:
+        out.append(length - side)
+    return out
+
+
+def segment_tiled(rgb: np.ndarray, segmenter, frac: float, vote: float = 0.5):
+    """Segment ``rgb`` (H, W, 3) uint8 as square tiles of side ``frac`` x its long side, half a
+    tile apart (:func:`tile_origins`), each at the segmenter's own input size.
+
+    Returns an object with the fields of a segmentation (``instance`` (H, W) int32,
+    ``semantic`` (H, W) uint8, ``tree_class``, ``classes``): "tree" where at least ``vote`` of
+    the tiles holding the pixel say so, instances the 8-connected parts of that mask; the other
+    pixels keep the whole photo's classes (its "tree" pixels outside the tiled mask become
+    unassigned, 255).
+    """
+    import cv2
+    from types import SimpleNamespace
+
+    if not 0 < frac <= 1:
+        raise ValueError(f"tile fraction must be in (0, 1], got {frac}")
+    H, W = rgb.shape[:2]
+    side = int(round(frac * max(H, W)))
+    votes = np.zeros((H, W), np.float32)
+    cover = np.zeros((H, W), np.float32)
+    for y0 in tile_origins(H, side):
+        for x0 in tile_origins(W, side):
+            y1, x1 = min(H, y0 + side), min(W, x0 + side)
+            r = segmenter.predict(np.ascontiguousarray(rgb[y0:y1, x0:x1]), size=(x1 - x0, y1 - y0))
+            votes[y0:y1, x0:x1] += r.semantic == r.tree_class
+            cover[y0:y1, x0:x1] += 1.0
+    whole = segmenter.predict(rgb, size=(W, H))
+    tree = votes >= vote * cover
+    _, inst = cv2.connectedComponents(tree.astype(np.uint8), connectivity=8)
+    sem = np.asarray(whole.semantic, np.uint8).copy()
+    sem[~tree & (sem == whole.tree_class)] = 255
+    sem[tree] = whole.tree_class
+    return SimpleNamespace(instance=inst.astype(np.int32), semantic=sem, tree_class=whole.tree_class,
+                           classes=whole.classes)
+
+
 def summarise(rows: Sequence[dict], min_width_px: float = MIN_WIDTH_PX) -> dict:
     """Mean IoU, recall (IoU >= :data:`FOUND_IOU`), mean pixel recall and what the missed
     pixels were called, over the trunks at least ``min_width_px`` wide."""
@@ -220,9 +284,10 @@ def _draw(rgb: np.ndarray, entry: dict, scores: Sequence[dict], seg, path: Path)
 
 
 def run(folder: Path, outlines: dict, draw: Optional[Path] = None, segmenter=None,
-        crop: Optional[float] = None) -> list[dict]:
+        crop: Optional[float] = None, tiles: Optional[float] = None) -> list[dict]:
     """Score every outlined photo of ``folder``; a row per trunk (``photo`` added); with
-    ``crop``, each trunk in its own crop (:func:`score_trunk_in_crop`, no drawing)."""
+    ``crop``, each trunk in its own crop (:func:`score_trunk_in_crop`, no drawing); with
+    ``tiles``, the photo segmented in tiles (:func:`segment_tiled`)."""
     from monodbh.calib import load_photo
     from monodbh.models.runtime.segmenter import Segmenter
 
@@ -245,7 +310,7 @@ def run(folder: Path, outlines: dict, draw: Optional[Path] = None, segmenter=Non
                       **score_trunk_in_crop(rgb, tr["polygon"], seg_net, crop)}
                      for i, tr in enumerate(entry["trunks"])]
             continue
-        scores, seg = score_photo(rgb, entry, seg_net)
+        scores, seg = score_photo(rgb, entry, seg_net, tiles)
         rows += [{"photo": name, **s} for s in scores]
         if draw is not None:
             _draw(rgb, entry, scores, seg, Path(draw) / f"{p.stem}_outlines.png")
@@ -262,14 +327,19 @@ def main(argv=None) -> int:
     ap.add_argument("--model", type=Path, help="a segmenter ONNX file other than the shipped one")
     ap.add_argument("--crop", type=float, metavar="F",
                     help="segment a square crop of side F x the photo's long side around each trunk")
+    ap.add_argument("--tiles", type=float, metavar="F",
+                    help="segment the whole photo in overlapping square tiles of side F x its long side")
     a = ap.parse_args(argv)
-    if a.crop is not None and not 0 < a.crop <= 1:
-        ap.error(f"--crop must be in (0, 1], got {a.crop}")
+    if a.crop is not None and a.tiles is not None:
+        ap.error("--crop and --tiles exclude each other")
+    for flag, v in (("--crop", a.crop), ("--tiles", a.tiles)):
+        if v is not None and not 0 < v <= 1:
+            ap.error(f"{flag} must be in (0, 1], got {v}")
     seg = None
     if a.model is not None:
         from monodbh.models.runtime.segmenter import Segmenter
         seg = Segmenter(a.model)
-    rows = run(a.folder, load_outlines(a.outlines), a.draw, segmenter=seg, crop=a.crop)
+    rows = run(a.folder, load_outlines(a.outlines), a.draw, segmenter=seg, crop=a.crop, tiles=a.tiles)
     print("| photo | trunks >= 20 px | mean IoU | found (IoU >= 0.5) | local IoU | found by it | pixel recall |\n"
           "|---|---|---|---|---|---|---|")
     for name in sorted({r["photo"] for r in rows}):
