@@ -82,6 +82,36 @@ def roped_pair(rope_to: float, shade_from: float | None = None, W=480, H=400):
     return rgb, mask
 
 
+def arced_rope_scene(x0=100, x1=380, depth=40.0, found=0.7, W=520, H=420):
+    """A wide stem (x ``x0..x1``, brown bark, its mask exact) on a grey background, its red rope
+    seen from above: an arc through row 200 at the middle whose ends rise ``depth`` px at the
+    silhouette (the front half of an ellipse). The rope finder found the middle ``found`` of it:
+    the rope band and the centre line (one point per 10 px) end there. Returns
+    ``(rgb (H, W, 3) uint8, mask (H, W) bool, Perception)``."""
+    from monodbh.toolkit.geometry import Perception
+    rng = np.random.default_rng(2)
+    rgb = np.zeros((H, W, 3), np.float32)
+    rgb[:] = (150, 160, 170)
+    rgb[:, x0:x1] = (90, 70, 55)
+    xc, a = 0.5 * (x0 + x1), 0.5 * (x1 - x0)
+    xs = np.arange(x0, x1) + 0.5
+    ys = 200 - depth * (1 - np.sqrt(np.clip(1 - ((xs - xc) / a) ** 2, 0, 1)))
+    for x, y in zip(range(x0, x1), np.round(ys).astype(int)):
+        rgb[y - 2:y + 3, x] = (170, 30, 25)
+    rgb = np.clip(rgb + rng.normal(0, 2.0, rgb.shape), 0, 255).astype(np.uint8)
+    mask = np.zeros((H, W), bool)
+    mask[:, x0:x1] = True
+    bx0, bx1 = xc - found * a, xc + found * a
+    on = (xs >= bx0) & (xs <= bx1)
+    L = bx1 - bx0
+    band = np.zeros((H, W), bool)
+    band[int(200 - L):int(200 + L) + 1, int(bx0):int(bx1)] = True
+    perc = Perception(rgb=rgb, camera=None, rope_xy=np.array([xc, 200.0]), rope_dir=np.array([1.0, 0.0]),
+                      rope_half_px=2.5, tree_mask=mask, ground_mask=np.zeros_like(mask), edge_search_px=6.0,
+                      rope_band_mask=band, rope_length_px=float(L), rope_polyline=np.c_[xs[on], ys[on]][::10])
+    return rgb, mask, perc
+
+
 def rope_perception(rgb, mask, band_x0, band_x1):
     from monodbh.toolkit.geometry import Perception
     band = np.zeros(mask.shape, bool)

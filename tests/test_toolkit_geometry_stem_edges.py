@@ -4,7 +4,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from geometry_scenes import rope_perception, roped_pair
+from geometry_scenes import arced_rope_scene, rope_perception, roped_pair
 from monodbh.toolkit.geometry.stem_edges import edges_checked_by_rope, edges_two_pass
 
 
@@ -20,6 +20,32 @@ def test_merged_neighbour_is_cut_at_the_rope_end():
     assert n == 1
     assert abs(e.left_xy[0] - 199.5) < 1.0 and abs(e.right_xy[0] - 259.5) < 1.0
     assert abs(e.width_px - 60.0) < 1.5
+
+
+def test_merged_neighbour_is_cut_with_the_rope_centre_line_given():
+    # the same check reading the rope's row along its (straight) centre line
+    rgb, mask = roped_pair(rope_to=260)
+    perc = dataclasses.replace(rope_perception(rgb, mask, 201, 259),
+                               rope_polyline=np.c_[np.arange(201.0, 260.0, 4.0), np.full(15, 200.0)])
+    gray = rgb.astype(np.float32).mean(2)
+    e, n = edges_checked_by_rope(gray, perc, edges_two_pass(gray, mask, perc))
+    assert n == 1
+    assert abs(e.left_xy[0] - 199.5) < 1.0 and abs(e.right_xy[0] - 259.5) < 1.0
+
+
+def test_arced_rope_is_read_along_its_curve_and_the_mask_edges_stay():
+    # a close wide stem seen from above: the rope's ends rise 40 px at the flanks, and the rope
+    # band was found over the middle 70 % only. Read along the rope's centre line, the rope goes
+    # on to the mask's edges, which stay; a straight row along the chord misses the rising ends
+    # and would cut both sides at the band's ends (196 px for 280)
+    rgb, mask, perc = arced_rope_scene(depth=40.0, found=0.7)
+    gray = rgb.astype(np.float32).mean(2)
+    e1 = edges_two_pass(gray, mask, perc)
+    assert abs(e1.width_px - 280.0) < 1.5
+    e, n = edges_checked_by_rope(gray, perc, e1)
+    assert n == 0 and abs(e.width_px - 280.0) < 1.5
+    e_straight, n_straight = edges_checked_by_rope(gray, dataclasses.replace(perc, rope_polyline=None), e1)
+    assert n_straight == 2 and e_straight.width_px < 0.75 * 280
 
 
 def test_rope_seen_on_part_of_the_stem_keeps_the_mask_edge():

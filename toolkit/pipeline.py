@@ -403,6 +403,7 @@ def _perception(frame: WorkFrame, choice: RopeChoice, stem: _Stem, ruler, ground
         # the band detector's and the finder's bands are the rope's own extent across the stem:
         # they check the stem's width (a stem-search row is not)
         rope_length_px=_polyline_span(rope.polyline) if choice.source.spans_stem else None,
+        rope_polyline=None if rope.polyline is None else np.asarray(rope.polyline, np.float64),
         rope_band_mask=stem.band_mask,
         rope_thickness_px=ruler.thickness_px, rope_thickness_native_px=ruler.thickness_native_px,
         rope_contrast=ruler.contrast, rope_thickness_edges=ruler.edges, rope_diameter_m=req.rope_diameter_m,

@@ -15,7 +15,7 @@ import numpy as np
 
 from .config import EdgeConfig
 
-__all__ = ["TrunkEdges", "trunk_edges", "rope_row_contrast", "combine_edges", "channel_mean",
+__all__ = ["TrunkEdges", "trunk_edges", "rope_row_contrast", "rope_curve", "combine_edges", "channel_mean",
            "sample_image", "subpixel_peak", "SMOOTH_KERNEL", "REASON_OUT_OF_PHOTO"]
 
 #: :attr:`TrunkEdges.reason` when a side of the stem lies outside the photo at the rope
@@ -269,7 +269,7 @@ def trunk_edges(gray: np.ndarray, tree_mask: np.ndarray, center_xy, across_dir, 
 
 
 def rope_row_contrast(redness: np.ndarray, center_xy, rope_dir, across, along, s: np.ndarray, *,
-                      rope_half_px: float, sag_px: float = 0.0) -> np.ndarray:
+                      rope_half_px: float, sag_px: float = 0.0, curve=None) -> np.ndarray:
     """Red-ness of the rope's row minus that of the rows beside it, at positions across the stem.
 
     The rope's centre line is the straight line through ``center_xy`` along ``rope_dir``; the
@@ -286,7 +286,11 @@ def rope_row_contrast(redness: np.ndarray, center_xy, rope_dir, across, along, s
     s : (N,) positions along ``across`` from ``center_xy`` (pixels).
     rope_half_px : half thickness of the rope (pixels).
     sag_px : how far the rope may bend away from the straight line (pixels; a rope seen from
-        above or below is an arc).
+        above or below is an arc), or from ``curve`` where given.
+    curve : (5,) ``(c0, c1, c2, s_lo, s_hi)`` from :func:`rope_curve`: the rope's centre line
+        as an offset ``t = c0 + c1 s + c2 s^2`` (pixels) normal to ``across`` for ``s`` in
+        ``[s_lo, s_hi]``, on along the end's tangent past them; or None: the straight line along
+        ``rope_dir``.
 
     Returns
     -------
@@ -305,7 +309,13 @@ def rope_row_contrast(redness: np.ndarray, center_xy, rope_dir, across, along, s
     if d @ u < 0:
         d = -d
     s = np.asarray(s, np.float64)
-    base = np.asarray(center_xy, np.float64)[None] + (s / max(float(d @ u), 0.3))[:, None] * d[None]
+    if curve is None:
+        base = np.asarray(center_xy, np.float64)[None] + (s / max(float(d @ u), 0.3))[:, None] * d[None]
+    else:
+        lo, hi = (curve[3], curve[4]) if len(curve) > 3 else (-np.inf, np.inf)
+        sc = np.clip(s, lo, hi)         # past the line's ends: on along the end's tangent
+        t0 = curve[0] + curve[1] * sc + curve[2] * sc * sc + (curve[1] + 2 * curve[2] * sc) * (s - sc)
+        base = np.asarray(center_xy, np.float64)[None] + s[:, None] * u[None] + t0[:, None] * _normal_toward(u, a)[None]
     h = max(0.5, float(rope_half_px))
     reach = 1.5 * h + 1.0 + sag_px
     t_in = np.arange(-reach, reach + 1e-6, 0.5)
@@ -317,6 +327,48 @@ def rope_row_contrast(redness: np.ndarray, center_xy, rope_dir, across, along, s
         return sample_image(redness, P[..., 0], P[..., 1])
 
     return (rows(t_in).max(1) - np.median(rows(t_ref), 1)).astype(np.float32)
+
+
+def _normal_toward(u: np.ndarray, a: np.ndarray) -> np.ndarray:
+    """(2,) the unit normal to ``u`` on ``a``'s side (``a`` need not be normal to ``u``)."""
+    n = np.array([-u[1], u[0]], np.float64)
+    return n if n @ a >= 0 else -n
+
+
+def rope_curve(polyline, center_xy, across, along) -> np.ndarray | None:
+    """The rope's centre line as a quadratic offset along the stem, for :func:`rope_row_contrast`.
+
+    A rope seen from above or below is an arc whose ends rise (or sink) fastest at the stem's
+    flanks; a row read along its chord misses it there. The quadratic follows the arc over the
+    line and extends it past the line's ends.
+
+    Parameters
+    ----------
+    polyline : (N, 2) rope centre line (pixels), N >= 3.
+    center_xy : (2,) rope centre; across, along : (2,) unit directions across and along the stem.
+
+    Returns
+    -------
+    (5,) ``(c0, c1, c2, s_lo, s_hi)``: ``t = c0 + c1 s + c2 s^2`` fitted over the line's
+    extent ``[s_lo, s_hi]`` (``s``: pixels along ``across`` from ``center_xy``; ``t``: pixels
+    normal to it, toward ``along``), or None for fewer than 3 points or a line shorter than 4 px.
+
+    Examples
+    --------
+    >>> s = np.linspace(-50, 50, 11)
+    >>> pl = np.c_[100 + s, 80 + 0.004 * s ** 2]
+    >>> (np.round(rope_curve(pl, (100, 80), (1, 0), (0, 1)), 4) + 0.0).tolist()    # (+ 0.0: no "-0.0")
+    [0.0, 0.0, 0.004, -50.0, 50.0]
+    """
+    if polyline is None or len(polyline) < 3:
+        return None
+    P = np.asarray(polyline, np.float64) - np.asarray(center_xy, np.float64)[None]
+    u = np.asarray(across, np.float64)
+    ss, tt = P @ u, P @ _normal_toward(u, along)
+    if np.ptp(ss) < 4:
+        return None
+    c2, c1, c0 = np.polyfit(ss, tt, 2)
+    return np.array([c0, c1, c2, ss.min(), ss.max()])
 
 
 def combine_edges(left: TrunkEdges, right: TrunkEdges, frame: TrunkEdges | None = None) -> TrunkEdges:

@@ -11,7 +11,7 @@ import numpy as np
 
 from ..rope import redness_map
 from .config import EdgeConfig, StemEdgesConfig
-from .edges import REASON_OUT_OF_PHOTO, TrunkEdges, combine_edges, rope_row_contrast, trunk_edges
+from .edges import REASON_OUT_OF_PHOTO, TrunkEdges, combine_edges, rope_curve, rope_row_contrast, trunk_edges
 from .perception import Perception
 
 __all__ = ["stem_edges", "edges_two_pass", "edges_checked_by_rope"]
@@ -36,14 +36,24 @@ def edges_two_pass(gray: np.ndarray, mask: np.ndarray, perc: Perception, config:
 
 
 def _rope_contrast_fn(perc: Perception, gray_shape: tuple[int, int], edges: TrunkEdges, reach_px: float,
-                      w3: float):
+                      w3: float, config: StemEdgesConfig):
     """``contrast(lo, hi)``: the median red-ness contrast of the rope's row (against the rows
     beside it) at positions ``lo..hi`` across the stem (pixels from the rope centre, every
-    0.5 px; nan for fewer than 3), read in a window of the photo around the stem only."""
+    0.5 px; nan for fewer than 3), read in a window of the photo around the stem only. The row
+    follows the rope's centre line (``perc.rope_polyline``, a quadratic extended past its ends)
+    within ``config.rope_curve_tolerance``; without one, a straight row that may sag by
+    ``config.rope_straight_sag``."""
     c = np.asarray(perc.rope_xy, np.float64)
     h = max(0.5, float(perc.rope_half_px))
-    sag = 0.05 * w3
-    m = int(np.ceil(reach_px + 6 * h + 8 + sag))
+    curve = rope_curve(perc.rope_polyline, c, edges.across, edges.along)
+    if curve is None:
+        sag = config.rope_straight_sag * w3
+        bend = sag
+    else:
+        sag = config.rope_curve_tolerance * w3 + 1.0
+        s_max = reach_px + 1.0
+        bend = sag + abs(curve[0]) + abs(curve[1]) * s_max + abs(curve[2]) * s_max ** 2
+    m = int(np.ceil(reach_px + 6 * h + 8 + bend))
     H, W = gray_shape
     x0, y0 = max(0, int(c[0]) - m), max(0, int(c[1]) - m)
     x1, y1 = min(W, int(c[0]) + m + 1), min(H, int(c[1]) + m + 1)
@@ -55,7 +65,7 @@ def _rope_contrast_fn(perc: Perception, gray_shape: tuple[int, int], edges: Trun
         if len(ss) < 3:
             return np.nan
         return float(np.median(rope_row_contrast(F, c_loc, perc.rope_dir, edges.across, edges.along, ss,
-                                                 rope_half_px=h, sag_px=sag)))
+                                                 rope_half_px=h, sag_px=sag, curve=curve)))
     return contrast
 
 
@@ -95,7 +105,7 @@ def edges_checked_by_rope(gray: np.ndarray, perc: Perception, edges: TrunkEdges,
     gaps = {"left": sL3 - sL1, "right": sR1 - sR3}
     if w3 <= 4 or max(abs(g) for g in gaps.values()) <= gap_min:
         return edges, 0
-    contrast = _rope_contrast_fn(perc, gray.shape, edges, max(abs(sL1), abs(sR1), abs(sL3), abs(sR3)), w3)
+    contrast = _rope_contrast_fn(perc, gray.shape, edges, max(abs(sL1), abs(sR1), abs(sL3), abs(sR3)), w3, cfg)
     c_in = contrast(sL3 + 0.15 * w3, sR3 - 0.15 * w3)
     if not c_in > cfg.rope_gap_min_contrast:
         return edges, 0
