@@ -43,10 +43,11 @@ class StemEdgesConfig:
     #: (stem-edges-rope-check.md)
     rope_gap_min_contrast: float = 0.02
     #: how far (fraction of the stem's width, plus 1 px) the rope may stray from its centre line's
-    #: quadratic (extended past the line's ends) where its row is read; without a centre line, a
-    #: straight row with this tolerance as its sag is read instead (stem-edges-rope-check.md)
+    #: quadratic (on along the end's tangent past the line's ends) where its row is read
+    #: (stem-edges-rope-check.md)
     rope_curve_tolerance: float = 0.02
-    #: the straight row's sag tolerance (fraction of the stem's width) without a centre line
+    #: without a centre line (``Perception.rope_polyline`` None), a straight row along the rope's
+    #: direction is read, which may sag this fraction of the stem's width (stem-edges-rope-check.md)
     rope_straight_sag: float = 0.05
     #: where the rope band runs on beyond a side's mask edge (by the same margin) and its row
     #: there is at least this fraction as red as across the stem, the mask edge lies inside the

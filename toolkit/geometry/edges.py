@@ -272,8 +272,9 @@ def rope_row_contrast(redness: np.ndarray, center_xy, rope_dir, across, along, s
                       rope_half_px: float, sag_px: float = 0.0, curve=None) -> np.ndarray:
     """Red-ness of the rope's row minus that of the rows beside it, at positions across the stem.
 
-    The rope's centre line is the straight line through ``center_xy`` along ``rope_dir``; the
-    position ``s`` is measured along ``across`` (the direction of the stem's cross-section).
+    The rope's centre line is the straight line through ``center_xy`` along ``rope_dir``, or the
+    ``curve`` where given (a rope seen from above or below is an arc); the position ``s`` is
+    measured along ``across`` (the direction of the stem's cross-section).
     Where the rope is, its row is redder than the rows ``3-6`` rope half-thicknesses above and
     below; where the stem carries no rope (e.g. a neighbouring trunk the segmenter merged in),
     the two are alike.
