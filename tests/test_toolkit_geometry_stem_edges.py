@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from geometry_scenes import arced_rope_scene, rope_perception, roped_pair
-from monodbh.toolkit.geometry.stem_edges import edges_checked_by_rope, edges_two_pass
+from monodbh.toolkit.geometry.stem_edges import edges_checked_by_rope, edges_two_pass, stem_edges
 
 
 def test_merged_neighbour_is_cut_at_the_rope_end():
@@ -46,6 +46,29 @@ def test_arced_rope_is_read_along_its_curve_and_the_mask_edges_stay():
     assert n == 0 and abs(e.width_px - 280.0) < 1.5
     e_straight, n_straight = edges_checked_by_rope(gray, dataclasses.replace(perc, rope_polyline=None), e1)
     assert n_straight == 2 and e_straight.width_px < 0.75 * 280
+
+
+def test_mask_and_band_inside_the_stem_move_out_to_the_rope_end():
+    # a close stem seen from above (x 100..380): the mask and the rope band both stop 50 px
+    # inside each flank, where the rope still runs on: both edges move out to the silhouette
+    rgb, _, perc = arced_rope_scene(depth=40.0, found=0.65)
+    inner = np.zeros(perc.tree_mask.shape, bool)
+    inner[:, 149:331] = True
+    perc = dataclasses.replace(perc, tree_mask=inner, edge_mask=inner)
+    edges, flags, _ = stem_edges(perc, rgb.astype(np.float32).mean(2))
+    assert "edges_out_to_rope_end" in flags
+    assert abs(edges.left_xy[0] - 100.0) < 1.5 and abs(edges.right_xy[0] - 380.0) < 1.5
+
+
+def test_rope_end_hanging_past_the_stem_does_not_move_its_edge():
+    # the rope's loose end runs on 50 px past the stem's right side over the background: the
+    # silhouette there is the stem's own, stronger than any edge at the rope's end
+    rgb, _, perc = arced_rope_scene(depth=40.0, found=0.65)
+    rgb[178:183, 380:430] = (170, 30, 25)
+    perc = dataclasses.replace(perc, rgb=rgb)
+    edges, flags, _ = stem_edges(perc, rgb.astype(np.float32).mean(2))
+    assert "edges_out_to_rope_end" not in flags
+    assert abs(edges.width_px - 280.0) < 1.5
 
 
 def test_rope_seen_on_part_of_the_stem_keeps_the_mask_edge():

@@ -49,6 +49,17 @@ class StemEdgesConfig:
     #: without a centre line (``Perception.rope_polyline`` None), a straight row along the rope's
     #: direction is read, which may sag this fraction of the stem's width (stem-edges-rope-check.md)
     rope_straight_sag: float = 0.05
+    #: a side moves out to the rope's end where the rope's row stays at least this fraction as
+    #: red as across the stem (stem-edges-rope-check.md) ...
+    rope_extend_level: float = 0.5
+    #: ... more than this fraction of the stem's width past the edge (read up to
+    #: ``rope_extend_max`` of it, across gaps of ``rope_extend_gap`` of it) ...
+    rope_extend_min: float = 0.12
+    rope_extend_max: float = 0.5
+    rope_extend_gap: float = 0.03
+    #: ... and the edge found there is at least this many times as strong (median gradient) as
+    #: the one it replaces (stem-edges-rope-check.md)
+    rope_extend_min_strength: float = 1.0
     #: where the rope band runs on beyond a side's mask edge (by the same margin) and its row
     #: there is at least this fraction as red as across the stem, the mask edge lies inside the
     #: stem and that side's edge is taken at the rope's end (stem-edges-rope-check.md)

@@ -1,12 +1,13 @@
 """The roped stem's edge pair at the rope, checked against the rope band (:func:`stem_edges`).
 
-Imported by :mod:`.measure`; imports :mod:`.edges` and the rope package's red-ness map
-(``monodbh.toolkit.rope.redness_map``). The tree mask guides the edge search; the rope, tied round
-the roped stem only, tells where a coarse mask took in a neighbouring trunk (decision record
-``docs/decisions/stem-edges-rope-check.md``).
+Imported by :mod:`.measure`; imports numpy, cv2, :mod:`.edges` and the rope package's red-ness
+map (``monodbh.toolkit.rope.redness_map``). The tree mask guides the edge search; the rope, tied
+round the roped stem only, tells where a coarse mask took in a neighbouring trunk, or stopped
+inside the stem (decision record ``docs/decisions/stem-edges-rope-check.md``).
 """
 from __future__ import annotations
 
+import cv2
 import numpy as np
 
 from ..rope import redness_map
@@ -14,7 +15,7 @@ from .config import EdgeConfig, StemEdgesConfig
 from .edges import REASON_OUT_OF_PHOTO, TrunkEdges, combine_edges, rope_curve, rope_row_contrast, trunk_edges
 from .perception import Perception
 
-__all__ = ["stem_edges", "edges_two_pass", "edges_checked_by_rope"]
+__all__ = ["stem_edges", "edges_two_pass", "edges_checked_by_rope", "edges_out_to_rope_end"]
 
 
 def edges_two_pass(gray: np.ndarray, mask: np.ndarray, perc: Perception, config: StemEdgesConfig | None = None,
@@ -60,13 +61,127 @@ def _rope_contrast_fn(perc: Perception, gray_shape: tuple[int, int], edges: Trun
     F = redness_map(np.ascontiguousarray(perc.rgb[y0:y1, x0:x1]))
     c_loc = c - (x0, y0)
 
+    def profile(ss):
+        return rope_row_contrast(F, c_loc, perc.rope_dir, edges.across, edges.along, ss,
+                                 rope_half_px=h, sag_px=sag, curve=curve)
+
     def contrast(lo, hi):
         ss = np.arange(lo, hi, 0.5)
         if len(ss) < 3:
             return np.nan
-        return float(np.median(rope_row_contrast(F, c_loc, perc.rope_dir, edges.across, edges.along, ss,
-                                                 rope_half_px=h, sag_px=sag, curve=curve)))
+        return float(np.median(profile(ss)))
+    contrast.profile = profile      # (N,) positions -> (N,) contrasts
     return contrast
+
+
+def _rope_end(profile, start: float, stop: float, level: float, gap_px: float) -> float:
+    """Scanning the rope's row from ``start`` toward ``stop`` (pixels across the stem, every
+    0.5 px), the last position at least ``level`` red before a run below it longer than
+    ``gap_px``. ``profile``: (N,) positions -> (N,) contrasts."""
+    ss = np.arange(start, stop, 0.5 if stop > start else -0.5)
+    if not len(ss):
+        return start
+    ok = profile(ss) >= level
+    last, miss = 0, 0.0
+    for i, v in enumerate(ok):
+        if v:
+            last, miss = i, 0.0
+        else:
+            miss += 0.5
+            if miss > gap_px:
+                break
+    return float(ss[last])
+
+
+def _band_between(shape: tuple[int, int], c: np.ndarray, u: np.ndarray, s_lo: float, s_hi: float) -> np.ndarray:
+    """(H, W) bool band from ``s_lo`` to ``s_hi`` along ``u`` from ``c`` (pixels), as long along
+    the stem either side as it is wide: a mask whose borders at the rope are those positions."""
+    a = np.array([-u[1], u[0]])
+    half = s_hi - s_lo
+    quad = np.array([c + s_lo * u - half * a, c + s_hi * u - half * a, c + s_hi * u + half * a, c + s_lo * u + half * a])
+    m = np.zeros(shape, np.uint8)
+    cv2.fillConvexPoly(m, np.round(quad).astype(np.int32), 1)
+    return m > 0
+
+
+def _edge_strength(gray: np.ndarray, pts) -> float:
+    """Median gradient magnitude (photo smoothed by a 1 px Gaussian) at a side's (N, 2) edge
+    points; 0 without points."""
+    if pts is None or len(pts) == 0:
+        return 0.0
+    P = np.asarray(pts, np.float64)
+    H, W = gray.shape
+    x0, y0 = max(0, int(P[:, 0].min()) - 6), max(0, int(P[:, 1].min()) - 6)
+    x1, y1 = min(W, int(P[:, 0].max()) + 7), min(H, int(P[:, 1].max()) + 7)
+    if x1 - x0 < 2 or y1 - y0 < 2:
+        return 0.0
+    g = cv2.GaussianBlur(np.ascontiguousarray(gray[y0:y1, x0:x1], np.float32), (0, 0), 1.0)
+    gy, gx = np.gradient(g)
+    m = np.hypot(gx, gy)
+    xi = np.clip(np.round(P[:, 0]).astype(int) - x0, 0, m.shape[1] - 1)
+    yi = np.clip(np.round(P[:, 1]).astype(int) - y0, 0, m.shape[0] - 1)
+    return float(np.median(m[yi, xi]))
+
+
+def edges_out_to_rope_end(gray: np.ndarray, perc: Perception, edges: TrunkEdges,
+                          config: StemEdgesConfig | None = None,
+                          edge_config: EdgeConfig | None = None) -> tuple[TrunkEdges, int]:
+    """Move a side of the edge pair out to where the rope ends, when the rope runs on well past it.
+
+    The rope is tied round the roped stem. Read along its centre line, where its row stays at
+    least ``config.rope_extend_level`` as red as across the stem for more than
+    ``config.rope_extend_min`` of the stem's width past a side's edge, both the mask and the rope
+    band stopped inside the stem (a close stem seen from above, its flank in shade). That side's
+    edge is searched at the rope's end, and kept only where it is at least
+    ``config.rope_extend_min_strength`` times as strong (median gradient) as the edge it replaces:
+    a rope's loose end or knot hanging on past the stem also reads as rope, but the silhouette it
+    would move to is weaker than the stem's own.
+
+    Parameters
+    ----------
+    gray : (H, W) float32 intensity of ``perc.rgb``.
+    perc : :class:`~.perception.Perception` (its rope, rope centre line and photo are used).
+    edges : the checked :class:`~.edges.TrunkEdges`.
+
+    Returns
+    -------
+    (edges, n_sides): the edges and how many sides moved out (0-2).
+    """
+    cfg = config or StemEdgesConfig()
+    if perc.rope_polyline is None or not edges:
+        return edges, 0
+    c = np.asarray(perc.rope_xy, np.float64)
+    u = edges.across
+    sL, sR = float((edges.left_xy - c) @ u), float((edges.right_xy - c) @ u)
+    w = sR - sL
+    if w <= 8:
+        return edges, 0
+    reach = cfg.rope_extend_max * w
+    contrast = _rope_contrast_fn(perc, gray.shape, edges, max(abs(sL), abs(sR)) + reach, w, cfg)
+    c_in = contrast(sL + 0.15 * w, sR - 0.15 * w)
+    if not c_in > cfg.rope_gap_min_contrast:
+        return edges, 0
+    level, gap = cfg.rope_extend_level * c_in, max(2.0, cfg.rope_extend_gap * w)
+    endL = _rope_end(contrast.profile, sL + 0.15 * w, sL - reach, level, gap)
+    endR = _rope_end(contrast.profile, sR - 0.15 * w, sR + reach, level, gap)
+    move = {"left": sL - endL > cfg.rope_extend_min * w, "right": endR - sR > cfg.rope_extend_min * w}
+    if not any(move.values()):
+        return edges, 0
+    lo, hi = (endL if move["left"] else sL), (endR if move["right"] else sR)
+    e = edges_two_pass(gray, _band_between(gray.shape, c, u, lo, hi), perc, cfg, edge_config)
+    if not e:
+        return edges, 0
+    for side in ("left", "right"):
+        if move[side] and (_edge_strength(gray, e.points.get(side))
+                           < cfg.rope_extend_min_strength * _edge_strength(gray, edges.points.get(side))):
+            move[side] = False
+    if not any(move.values()):
+        return edges, 0
+    out = e if all(move.values()) else combine_edges(e if move["left"] else edges, e if move["right"] else edges,
+                                                      frame=edges)
+    if out.width_px <= edges.width_px:
+        return edges, 0
+    return out, int(move["left"]) + int(move["right"])
 
 
 def edges_checked_by_rope(gray: np.ndarray, perc: Perception, edges: TrunkEdges,
@@ -155,6 +270,11 @@ def stem_edges(perc: Perception, gray: np.ndarray, config: StemEdgesConfig | Non
         edges, n_sides = edges_checked_by_rope(gray, perc, edges, cfg, edge_config)
         if n_sides:
             flags.append("edges_from_rope_band" if n_sides == 2 else "edge_at_rope_end")
+        else:
+            # the rope runs on well past an edge the mask and the band both stopped at
+            edges, n_out = edges_out_to_rope_end(gray, perc, edges, cfg, edge_config)
+            if n_out:
+                flags.append("edges_out_to_rope_end")
     if edges and perc.rope_length_px and perc.rope_band_mask is not None:
         # the rope spans the stem: a stem much wider than the rope band means edges the rope
         # check could not settle; the gap widens the sigma
