@@ -26,6 +26,7 @@ from .config import MeasureConfig
 from .frames import WorkFrame, read_photo, square_crop, work_frame
 from .orientation import sideways_score
 from .geometry import Perception, measure_from_perception
+from .geometry.edges import band_mask
 from .result import MeasureResult, PointCloud
 from .rope.geometry import instance_in_window
 from .rope.select import Refusal, RopeChoice, RopeSource, select_rope
@@ -310,19 +311,10 @@ def rope_band_mask(rope, shape: tuple[int, int], height_factor: float = 3.0) -> 
     rope : :class:`~.rope.detection.RopeDetection` (``polyline`` (N, 2), ``center_xy``).
     shape : (H, W) of the mask.
     """
-    H, W = shape
     pl = np.asarray(rope.polyline, np.float64)
     d = pl[-1] - pl[0]
     L = float(np.linalg.norm(d))
-    u = d / max(L, 1e-6)
-    a = np.array([-u[1], u[0]])
-    c = np.asarray(rope.center_xy, np.float64)
-    hh = height_factor * L
-    quad = np.array([c - u * L / 2 - a * hh, c + u * L / 2 - a * hh, c + u * L / 2 + a * hh,
-                     c - u * L / 2 + a * hh])
-    m = np.zeros((H, W), np.uint8)
-    cv2.fillConvexPoly(m, np.round(quad).astype(np.int32), 1)
-    return m > 0
+    return band_mask(shape, rope.center_xy, d / max(L, 1e-6), -L / 2, L / 2, height_factor * L)
 
 
 def _polyline_span(polyline) -> float | None:

@@ -15,7 +15,7 @@ import numpy as np
 
 from .config import EdgeConfig
 
-__all__ = ["TrunkEdges", "trunk_edges", "rope_row_contrast", "rope_curve", "combine_edges", "channel_mean",
+__all__ = ["TrunkEdges", "trunk_edges", "rope_row_contrast", "rope_curve", "band_mask", "combine_edges", "channel_mean",
            "sample_image", "subpixel_peak", "SMOOTH_KERNEL", "REASON_OUT_OF_PHOTO"]
 
 #: :attr:`TrunkEdges.reason` when a side of the stem lies outside the photo at the rope
@@ -313,8 +313,7 @@ def rope_row_contrast(redness: np.ndarray, center_xy, rope_dir, across, along, s
     if curve is None:
         base = np.asarray(center_xy, np.float64)[None] + (s / max(float(d @ u), 0.3))[:, None] * d[None]
     else:
-        lo, hi = (curve[3], curve[4]) if len(curve) > 3 else (-np.inf, np.inf)
-        sc = np.clip(s, lo, hi)         # past the line's ends: on along the end's tangent
+        sc = np.clip(s, curve[3], curve[4])     # past the line's ends: on along the end's tangent
         t0 = curve[0] + curve[1] * sc + curve[2] * sc * sc + (curve[1] + 2 * curve[2] * sc) * (s - sc)
         base = np.asarray(center_xy, np.float64)[None] + s[:, None] * u[None] + t0[:, None] * _normal_toward(u, a)[None]
     h = max(0.5, float(rope_half_px))
@@ -370,6 +369,27 @@ def rope_curve(polyline, center_xy, across, along) -> np.ndarray | None:
         return None
     c2, c1, c0 = np.polyfit(ss, tt, 2)
     return np.array([c0, c1, c2, ss.min(), ss.max()])
+
+
+def band_mask(shape: tuple[int, int], center_xy, across, s_lo: float, s_hi: float, half_len: float) -> np.ndarray:
+    """(H, W) bool band across a stem: from ``s_lo`` to ``s_hi`` pixels along ``across`` from
+    ``center_xy``, ``half_len`` pixels either side of that line (normal to ``across``).
+
+    Examples
+    --------
+    >>> m = band_mask((20, 30), (15, 10), (1, 0), -5, 5, 2)
+    >>> np.argwhere(m)[[0, -1]].tolist()       # rows 8..12, columns 10..20
+    [[8, 10], [12, 20]]
+    """
+    import cv2
+    c = np.asarray(center_xy, np.float64)
+    u = np.asarray(across, np.float64)
+    a = np.array([-u[1], u[0]])
+    quad = np.array([c + s_lo * u - half_len * a, c + s_hi * u - half_len * a,
+                     c + s_hi * u + half_len * a, c + s_lo * u + half_len * a])
+    m = np.zeros(shape, np.uint8)
+    cv2.fillConvexPoly(m, np.round(quad).astype(np.int32), 1)
+    return m > 0
 
 
 def combine_edges(left: TrunkEdges, right: TrunkEdges, frame: TrunkEdges | None = None) -> TrunkEdges:

@@ -12,7 +12,8 @@ import numpy as np
 
 from ..rope import redness_map
 from .config import EdgeConfig, StemEdgesConfig
-from .edges import REASON_OUT_OF_PHOTO, TrunkEdges, combine_edges, rope_curve, rope_row_contrast, trunk_edges
+from .edges import (REASON_OUT_OF_PHOTO, TrunkEdges, band_mask, combine_edges, rope_curve, rope_row_contrast,
+                    trunk_edges)
 from .perception import Perception
 
 __all__ = ["stem_edges", "edges_two_pass", "edges_checked_by_rope", "edges_out_to_rope_end"]
@@ -93,17 +94,6 @@ def _rope_end(profile, start: float, stop: float, level: float, gap_px: float) -
     return float(ss[last])
 
 
-def _band_between(shape: tuple[int, int], c: np.ndarray, u: np.ndarray, s_lo: float, s_hi: float) -> np.ndarray:
-    """(H, W) bool band from ``s_lo`` to ``s_hi`` along ``u`` from ``c`` (pixels), as long along
-    the stem either side as it is wide: a mask whose borders at the rope are those positions."""
-    a = np.array([-u[1], u[0]])
-    half = s_hi - s_lo
-    quad = np.array([c + s_lo * u - half * a, c + s_hi * u - half * a, c + s_hi * u + half * a, c + s_lo * u + half * a])
-    m = np.zeros(shape, np.uint8)
-    cv2.fillConvexPoly(m, np.round(quad).astype(np.int32), 1)
-    return m > 0
-
-
 def _edge_strength(gray: np.ndarray, pts) -> float:
     """Median gradient magnitude (photo smoothed by a 1 px Gaussian) at a side's (N, 2) edge
     points; 0 without points."""
@@ -168,7 +158,7 @@ def edges_out_to_rope_end(gray: np.ndarray, perc: Perception, edges: TrunkEdges,
     if not any(move.values()):
         return edges, 0
     lo, hi = (endL if move["left"] else sL), (endR if move["right"] else sR)
-    e = edges_two_pass(gray, _band_between(gray.shape, c, u, lo, hi), perc, cfg, edge_config)
+    e = edges_two_pass(gray, band_mask(gray.shape, c, u, lo, hi, hi - lo), perc, cfg, edge_config)
     if not e:
         return edges, 0
     for side in ("left", "right"):
