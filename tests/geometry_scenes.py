@@ -112,6 +112,29 @@ def arced_rope_scene(x0=100, x1=380, depth=40.0, found=0.7, W=520, H=420):
     return rgb, mask, perc
 
 
+def knotted_rope_scene(W=480, H=400):
+    """The roped stem (x 200..260, brown bark) alone on a grey background, its red rope (rows
+    198..202) knotted on the right flank: the knot (rows 194..207) sticks out to x 268 and a
+    loose end 4 px thick hangs from it straight down beside the stem (x 262..266, to row 300). The
+    coarse mask takes in the knot and the hanging end, as the segmenter's may. Returns
+    ``(rgb (H, W, 3) uint8, mask (H, W) bool, Perception)``."""
+    rng = np.random.default_rng(3)
+    rgb = np.zeros((H, W, 3), np.float32)
+    rgb[:] = (150, 160, 170)
+    rgb[:, 200:260] = (90, 70, 55)
+    red = (170, 30, 25)
+    rgb[198:203, 200:260] = red
+    rgb[194:208, 256:268] = red
+    rgb[207:301, 262:266] = red
+    rgb = np.clip(rgb + rng.normal(0, 2.0, rgb.shape), 0, 255).astype(np.uint8)
+    mask = np.zeros((H, W), bool)
+    mask[:, 199:261] = True
+    mask[194:208, 256:268] = True
+    mask[207:301, 256:266] = True
+    perc = rope_perception(rgb, mask, 201, 266)
+    return rgb, mask, perc
+
+
 def rope_perception(rgb, mask, band_x0, band_x1):
     from monodbh.toolkit.geometry import Perception
     band = np.zeros(mask.shape, bool)

@@ -56,3 +56,20 @@ def test_channel_mean_is_numpys_mean_bit_for_bit():
         rgb = rng.integers(0, 256, shape, dtype=np.uint8)
         got = channel_mean(rgb)
         assert got.dtype == np.float32 and np.array_equal(got, rgb.astype(np.float32).mean(2))
+
+
+def test_refit_edges_moves_a_side_onto_its_kept_points():
+    from monodbh.toolkit.geometry.edges import TrunkEdges, refit_edges
+    # a vertical stem x 100..160 whose right side has 4 stray points 6 px outside, below the rope
+    t = np.array([-20.0, -15, -10, -5, 5, 10, 15, 20])
+    left = np.c_[np.full(8, 100.0), 200 + t]
+    right = np.c_[np.r_[np.full(4, 160.0), np.full(4, 166.0)], 200 + t]
+    e = TrunkEdges(left_xy=np.array([100.0, 200]), right_xy=np.array([163.0, 200]), width_px=63.0,
+                   along=np.array([0.0, 1.0]), across=np.array([1.0, 0.0]), edge_rms_px=3.0, n_lines=8,
+                   points=dict(left=left, right=right))
+    keep = {"right": np.r_[np.ones(4, bool), np.zeros(4, bool)]}
+    r = refit_edges(e, keep)
+    assert abs(r.left_xy[0] - 100.0) < 1e-6 and abs(r.right_xy[0] - 160.0) < 1e-6
+    assert abs(r.width_px - 60.0) < 1e-6 and abs(r.along[0]) < 1e-6 and len(r.points["right"]) == 4
+    # fewer than 3 points left on a side: the edges as they were
+    assert refit_edges(e, {"right": np.r_[np.ones(2, bool), np.zeros(6, bool)]}) is e

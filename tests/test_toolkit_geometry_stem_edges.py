@@ -123,3 +123,30 @@ def test_the_rope_check_thresholds_come_from_the_config():
     assert flags == ["edge_at_rope_end", "width_disagrees_rope"]
     assert width_vs_rope == pytest.approx(abs(np.log(edges.width_px / 58.0)))
 
+
+
+def test_knot_and_hanging_end_on_the_flank_are_not_the_stem_edge():
+    # the knot sticks out past the right flank and its loose end hangs beside the stem: the edge
+    # search finds the loose end's border on the lines below the rope; those points have rope
+    # red just inside them and are left out of the right side's line
+    from monodbh.toolkit.geometry import StemEdgesConfig
+    from geometry_scenes import knotted_rope_scene
+    rgb, mask, perc = knotted_rope_scene()
+    gray = rgb.astype(np.float32).mean(2)
+    e_off, flags_off, _ = stem_edges(perc, gray, StemEdgesConfig(rope_end_red_ratio=0.0))
+    assert "edge_points_on_rope_end" not in flags_off
+    assert e_off.right_xy[0] > 262.0            # pulled out by the hanging end
+    edges, flags, _ = stem_edges(perc, gray)
+    assert "edge_points_on_rope_end" in flags
+    assert abs(edges.left_xy[0] - 199.5) < 1.0 and abs(edges.right_xy[0] - 259.5) < 1.0
+
+
+def test_rope_without_knot_leaves_every_edge_point():
+    from monodbh.toolkit.geometry.stem_edges import edges_off_rope_ends
+    rgb, mask = roped_pair(rope_to=260)
+    mask[:, 262:] = False
+    perc = rope_perception(rgb, mask, 201, 259)
+    gray = rgb.astype(np.float32).mean(2)
+    e1 = edges_two_pass(gray, mask, perc)
+    e, n = edges_off_rope_ends(perc, gray.shape, e1)
+    assert n == 0 and e is e1

@@ -67,6 +67,15 @@ class StemEdgesConfig:
     #: ... when the band runs on past the mask edge by more than the rope's half thickness plus
     #: this many pixels (and the ``rope_gap_min_*`` margin) (stem-edges-rope-check.md)
     rope_overrun_extra_px: float = 1.5
+    #: an edge point whose inner side (up to ``rope_end_reach`` rope half-thicknesses inward)
+    #: is redder than the stem's bark on its line by at least this fraction of the rope's own
+    #: contrast lies on the rope's knot or hanging ends, not on the stem's silhouette: it is
+    #: left out of that side's line (0: off) (stem-edges-rope-check.md)
+    rope_end_red_ratio: float = 0.5
+    rope_end_reach: float = 2.0
+    #: ... where those points lie outward of the side's other points (along the stem's direction)
+    #: by more than this many rope half-thicknesses (and 1 px) (stem-edges-rope-check.md)
+    rope_end_min_out: float = 0.5
     #: edges wider than this factor times the rope band's length are flagged
     #: ``width_disagrees_rope`` and the gap enters the DBH sigma (stem-edges-rope-check.md)
     width_rope_ratio_max: float = 1.3

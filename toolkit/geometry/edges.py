@@ -15,8 +15,8 @@ import numpy as np
 
 from .config import EdgeConfig
 
-__all__ = ["TrunkEdges", "trunk_edges", "rope_row_contrast", "rope_curve", "band_mask", "combine_edges", "channel_mean",
-           "sample_image", "subpixel_peak", "SMOOTH_KERNEL", "REASON_OUT_OF_PHOTO"]
+__all__ = ["TrunkEdges", "trunk_edges", "rope_row_contrast", "rope_curve", "band_mask", "combine_edges", "refit_edges",
+           "channel_mean", "sample_image", "subpixel_peak", "SMOOTH_KERNEL", "REASON_OUT_OF_PHOTO"]
 
 #: :attr:`TrunkEdges.reason` when a side of the stem lies outside the photo at the rope
 REASON_OUT_OF_PHOTO = ("the stem runs out of the photo at the rope (step back or re-frame so that both "
@@ -406,3 +406,53 @@ def combine_edges(left: TrunkEdges, right: TrunkEdges, frame: TrunkEdges | None 
     return TrunkEdges(left_xy=left.left_xy, right_xy=right.right_xy, width_px=width, along=frame.along, across=u,
                       edge_rms_px=max(left.edge_rms_px, right.edge_rms_px), n_lines=min(left.n_lines, right.n_lines),
                       points=dict(left=left.points.get("left"), right=right.points.get("right")))
+
+
+def refit_edges(edges: TrunkEdges, keep: dict) -> TrunkEdges:
+    """The edges refitted on a subset of their points, as two parallel lines.
+
+    Parameters
+    ----------
+    edges : :class:`TrunkEdges` with ``points`` (each side's (N, 2) edge points).
+    keep : ``{"left": (N,) bool, "right": (M,) bool}``: the points to keep on each side (a side
+        not named keeps all).
+
+    Returns
+    -------
+    TrunkEdges: the two sides' lines through their kept points with one common direction (points
+    beyond 3.5 MAD left out once), on the same cross-section line; ``edges`` itself where a side
+    would keep fewer than 3 points. (Points left out for what they are, e.g. a rope's loose end
+    beside the stem, often lie on one side of the rope only: a side's own line refitted on the
+    rest may tilt; the common direction rests on both sides.)
+    """
+    c = 0.5 * (edges.left_xy + edges.right_xy)
+    u = edges.across
+    a = _normal_toward(u, edges.along)
+    T, S, L, kept = [], [], [], {}
+    for j, side in enumerate(("left", "right")):
+        P = np.asarray(edges.points[side], np.float64)
+        k = np.asarray(keep.get(side, np.ones(len(P), bool)), bool)
+        if k.sum() < 3:
+            return edges
+        Q = P[k] - c
+        T.append(Q @ a)
+        S.append(Q @ u)
+        L.append(np.full(k.sum(), j))
+        kept[side] = P[k]
+    t, s_, side_of = np.concatenate(T), np.concatenate(S), np.concatenate(L)
+    A = np.c_[side_of == 0, side_of == 1, t].astype(np.float64)
+    ok = np.ones(len(t), bool)
+    for _ in range(2):
+        coef, *_ = np.linalg.lstsq(A[ok], s_[ok], rcond=None)
+        r = s_ - A @ coef
+        new = np.abs(r) < 3.5 * (np.median(np.abs(r[ok])) + 0.05)
+        if min((new & (side_of == 0)).sum(), (new & (side_of == 1)).sum()) < 3:
+            break
+        ok = new
+    coef, *_ = np.linalg.lstsq(A[ok], s_[ok], rcond=None)
+    r = (s_ - A @ coef)[ok]
+    along = a + coef[2] * u
+    return TrunkEdges(left_xy=c + coef[0] * u, right_xy=c + coef[1] * u, width_px=float(coef[1] - coef[0]),
+                      along=along / np.linalg.norm(along), across=u, edge_rms_px=float(np.sqrt(np.mean(r ** 2))),
+                      n_lines=int(min((ok & (side_of == 0)).sum(), (ok & (side_of == 1)).sum())),
+                      points=dict(left=kept["left"][ok[side_of == 0]], right=kept["right"][ok[side_of == 1]]))

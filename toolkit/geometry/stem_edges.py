@@ -3,7 +3,8 @@
 Imported by :mod:`.measure`; imports numpy, cv2, :mod:`.edges` and the rope package's red-ness
 map (``monodbh.toolkit.rope.redness_map``). The tree mask guides the edge search; the rope, tied
 round the roped stem only, tells where a coarse mask took in a neighbouring trunk, or stopped
-inside the stem (decision record ``docs/decisions/stem-edges-rope-check.md``).
+inside the stem, and its knot and loose ends are left out of the edges (decision record
+``docs/decisions/stem-edges-rope-check.md``).
 """
 from __future__ import annotations
 
@@ -12,11 +13,11 @@ import numpy as np
 
 from ..rope import redness_map
 from .config import EdgeConfig, StemEdgesConfig
-from .edges import (REASON_OUT_OF_PHOTO, TrunkEdges, band_mask, combine_edges, rope_curve, rope_row_contrast,
-                    trunk_edges)
+from .edges import (REASON_OUT_OF_PHOTO, TrunkEdges, band_mask, combine_edges, refit_edges, rope_curve,
+                    rope_row_contrast, sample_image, trunk_edges)
 from .perception import Perception
 
-__all__ = ["stem_edges", "edges_two_pass", "edges_checked_by_rope", "edges_out_to_rope_end"]
+__all__ = ["stem_edges", "edges_two_pass", "edges_checked_by_rope", "edges_out_to_rope_end", "edges_off_rope_ends"]
 
 
 def edges_two_pass(gray: np.ndarray, mask: np.ndarray, perc: Perception, config: StemEdgesConfig | None = None,
@@ -232,6 +233,84 @@ def edges_checked_by_rope(gray: np.ndarray, perc: Perception, edges: TrunkEdges,
     return (e3 if n == 2 else combine_edges(left, right, frame=edges)), n
 
 
+def edges_off_rope_ends(perc: Perception, gray_shape: tuple[int, int], edges: TrunkEdges,
+                        config: StemEdgesConfig | None = None) -> tuple[TrunkEdges, int]:
+    """Leave out of each side's line the edge points that lie on the rope's knot or hanging ends.
+
+    A knot tied on the stem's flank sticks out past the silhouette, and its loose ends hang down
+    beside the stem: the edge search above and below the rope then finds their outer border
+    instead of the bark's on some lines. Such a point has rope-red pixels just inside it (within
+    ``config.rope_end_reach`` rope half-thicknesses), redder than the bark on its own line by at
+    least ``config.rope_end_red_ratio`` of the rope's contrast across the stem; the bark's own
+    border has bark there.
+
+    Parameters
+    ----------
+    perc : :class:`~.perception.Perception` (its photo, rope and rope centre line are used).
+    gray_shape : (H, W) of the working image.
+    edges : :class:`~.edges.TrunkEdges` with their points.
+
+    Returns
+    -------
+    (edges, n_points): the edges refitted without those points (each side keeps at least 3),
+    and how many points were left out.
+    """
+    cfg = config or StemEdgesConfig()
+    if not edges or cfg.rope_end_red_ratio <= 0 or not edges.points:
+        return edges, 0
+    pts = {k: np.asarray(edges.points.get(k), np.float64).reshape(-1, 2) for k in ("left", "right")}
+    if min(len(p) for p in pts.values()) < 4:
+        return edges, 0
+    c = np.asarray(perc.rope_xy, np.float64)
+    u = edges.across
+    sL, sR = float((edges.left_xy - c) @ u), float((edges.right_xy - c) @ u)
+    w = sR - sL
+    if w <= 8:
+        return edges, 0
+    contrast = _rope_contrast_fn(perc, gray_shape, edges, max(abs(sL), abs(sR)), w, cfg)
+    c_in = contrast(sL + 0.15 * w, sR - 0.15 * w)
+    if not c_in > cfg.rope_gap_min_contrast:
+        return edges, 0
+    h = max(0.5, float(perc.rope_half_px))
+    allp = np.vstack(list(pts.values()))
+    H, W = gray_shape
+    m = int(np.ceil(cfg.rope_end_reach * h + 4))
+    x0, y0 = max(0, int(allp[:, 0].min()) - m), max(0, int(allp[:, 1].min()) - m)
+    x1, y1 = min(W, int(allp[:, 0].max()) + m + 1), min(H, int(allp[:, 1].max()) + m + 1)
+    F = redness_map(np.ascontiguousarray(perc.rgb[y0:y1, x0:x1]))
+    o = np.array([x0, y0], np.float64)
+    inward = np.arange(0.5, cfg.rope_end_reach * h + 0.51, 0.5)
+    a = np.array([-u[1], u[0]])
+    slope = float(edges.along @ u) / float(edges.along @ a)      # the stem's direction: ds / dt
+    keep, n_out = {}, 0
+    for side, sign in (("left", 1.0), ("right", -1.0)):
+        P = pts[side] - o
+        other = pts["right" if side == "left" else "left"] - o
+        # the bark on each point's line: the middle 60 % between it and the other side's line
+        mid = np.median(other, 0)
+        fr = np.linspace(0.2, 0.8, 13)
+        Q = P[:, None, :] + fr[None, :, None] * ((mid - P) @ u)[:, None, None] * u[None, None, :]
+        bark = np.median(sample_image(F, Q[..., 0], Q[..., 1]), 1)
+        R = P[:, None, :] + sign * inward[None, :, None] * u[None, None, :]
+        inner = sample_image(F, R[..., 0], R[..., 1]).max(1)
+        k = inner - bark < cfg.rope_end_red_ratio * c_in
+        if k.sum() < 3 or k.all():
+            k = np.ones(len(P), bool)
+        else:
+            # left out only where they pull the side's line outward (the loose end beside the
+            # stem), beyond the kept points' line (the stem's direction) by ``rope_end_min_out``
+            t, s_ = P @ a, P @ u
+            s0 = np.median(s_[k] - slope * t[k])
+            out_px = -sign * (s_[~k] - s0 - slope * t[~k])
+            if not np.median(out_px) > max(1.0, cfg.rope_end_min_out * h):
+                k = np.ones(len(P), bool)
+        keep[side] = k
+        n_out += int((~k).sum())
+    if n_out == 0:
+        return edges, 0
+    return refit_edges(edges, keep), n_out
+
+
 def stem_edges(perc: Perception, gray: np.ndarray, config: StemEdgesConfig | None = None,
                edge_config: EdgeConfig | None = None) -> tuple[TrunkEdges, list[str], float]:
     """The roped stem's silhouette edges at the rope, checked against the rope band.
@@ -265,6 +344,11 @@ def stem_edges(perc: Perception, gray: np.ndarray, config: StemEdgesConfig | Non
             edges, n_out = edges_out_to_rope_end(gray, perc, edges, cfg, edge_config)
             if n_out:
                 flags.append("edges_out_to_rope_end")
+    if edges and perc.rope_band_mask is not None:
+        # a knot on the flank and its hanging ends are not the stem's border
+        edges, n_knot = edges_off_rope_ends(perc, gray.shape, edges, cfg)
+        if n_knot:
+            flags.append("edge_points_on_rope_end")
     if edges and perc.rope_length_px and perc.rope_band_mask is not None:
         # the rope spans the stem: a stem much wider than the rope band means edges the rope
         # check could not settle; the gap widens the sigma
