@@ -76,6 +76,30 @@ def _rope_contrast_fn(perc: Perception, gray_shape: tuple[int, int], edges: Trun
     return contrast
 
 
+def _rope_across_stem(perc: Perception, gray_shape: tuple[int, int], edges: TrunkEdges, reach_ratio: float,
+                      config: StemEdgesConfig):
+    """The edges' positions along the rope's row and the rope's contrast across the stem.
+
+    Returns
+    -------
+    ``(sL, sR, contrast, c_in)``: the left and right edges (pixels from the rope centre across
+    the stem), :func:`_rope_contrast_fn` read up to ``reach_ratio`` of the stem's width past the
+    farther edge, and the contrast across the stem's middle 70 %; None where the stem is 8 px or
+    narrower or that contrast is not above ``config.rope_gap_min_contrast``.
+    """
+    c = np.asarray(perc.rope_xy, np.float64)
+    u = edges.across
+    sL, sR = float((edges.left_xy - c) @ u), float((edges.right_xy - c) @ u)
+    w = sR - sL
+    if w <= 8:
+        return None
+    contrast = _rope_contrast_fn(perc, gray_shape, edges, max(abs(sL), abs(sR)) + reach_ratio * w, w, config)
+    c_in = contrast(sL + 0.15 * w, sR - 0.15 * w)
+    if not c_in > config.rope_gap_min_contrast:
+        return None
+    return sL, sR, contrast, c_in
+
+
 def _rope_end(profile, start: float, stop: float, level: float, gap_px: float) -> float:
     """Scanning the rope's row from ``start`` toward ``stop`` (pixels across the stem, every
     0.5 px), the last position at least ``level`` red before a run below it longer than
@@ -141,17 +165,13 @@ def edges_out_to_rope_end(gray: np.ndarray, perc: Perception, edges: TrunkEdges,
     cfg = config or StemEdgesConfig()
     if perc.rope_polyline is None or not edges:
         return edges, 0
-    c = np.asarray(perc.rope_xy, np.float64)
-    u = edges.across
-    sL, sR = float((edges.left_xy - c) @ u), float((edges.right_xy - c) @ u)
+    across = _rope_across_stem(perc, gray.shape, edges, cfg.rope_extend_max, cfg)
+    if across is None:
+        return edges, 0
+    sL, sR, contrast, c_in = across
+    c, u = np.asarray(perc.rope_xy, np.float64), edges.across
     w = sR - sL
-    if w <= 8:
-        return edges, 0
     reach = cfg.rope_extend_max * w
-    contrast = _rope_contrast_fn(perc, gray.shape, edges, max(abs(sL), abs(sR)) + reach, w, cfg)
-    c_in = contrast(sL + 0.15 * w, sR - 0.15 * w)
-    if not c_in > cfg.rope_gap_min_contrast:
-        return edges, 0
     level, gap = cfg.rope_extend_level * c_in, max(2.0, cfg.rope_extend_gap * w)
     endL = _rope_end(contrast.profile, sL + 0.15 * w, sL - reach, level, gap)
     endR = _rope_end(contrast.profile, sR - 0.15 * w, sR + reach, level, gap)
@@ -261,16 +281,11 @@ def edges_off_rope_ends(perc: Perception, gray_shape: tuple[int, int], edges: Tr
     pts = {k: np.asarray(edges.points.get(k), np.float64).reshape(-1, 2) for k in ("left", "right")}
     if min(len(p) for p in pts.values()) < 4:
         return edges, 0
-    c = np.asarray(perc.rope_xy, np.float64)
+    across = _rope_across_stem(perc, gray_shape, edges, 0.0, cfg)
+    if across is None:
+        return edges, 0
+    c_in = across[3]
     u = edges.across
-    sL, sR = float((edges.left_xy - c) @ u), float((edges.right_xy - c) @ u)
-    w = sR - sL
-    if w <= 8:
-        return edges, 0
-    contrast = _rope_contrast_fn(perc, gray_shape, edges, max(abs(sL), abs(sR)), w, cfg)
-    c_in = contrast(sL + 0.15 * w, sR - 0.15 * w)
-    if not c_in > cfg.rope_gap_min_contrast:
-        return edges, 0
     h = max(0.5, float(perc.rope_half_px))
     allp = np.vstack(list(pts.values()))
     H, W = gray_shape
