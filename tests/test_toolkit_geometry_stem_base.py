@@ -103,10 +103,19 @@ def test_stem_base_states():
     b = find(perc(base_finder=finder), flags)                     # p 0.4 < 0.5: a weak network base
     assert b.status == "network_weak" and np.allclose(b.xy, [240.0, 449.0]) and flags == ["stem_base_from_network"]
     assert find(perc(base_finder=finder), [], StemBaseConfig(p_strong=0.3)).status == "network"
-    # no segmented stem to confirm a base: nobody looks for one
+    # no segmented stem (the tree mask is the rope band's) or edges that disagree with the rope:
+    # the network still reads the strip below the rope, but the edge tracker does not follow
+    # edges it cannot confirm
     n = len(calls)
-    assert find(perc(base_finder=finder, extra={"tree_mask_from_rope": True}), []).status == "unconfirmed"
-    assert find(perc(), ["width_disagrees_rope"]).status == "unconfirmed" and len(calls) == n
+    b = find(perc(base_finder=finder, extra={"tree_mask_from_rope": True}), [])
+    assert b.status == "network_weak" and np.allclose(b.xy, [240.0, 449.0]) and len(calls) == n + 1
+    b = find(perc(base_finder=finder), ["width_disagrees_rope"])
+    assert b.status == "network_weak" and len(calls) == n + 2
+    assert find(perc(extra={"tree_mask_from_rope": True}), []).status == "unconfirmed"
+    assert find(perc(), ["width_disagrees_rope"]).status == "unconfirmed"
+    from monodbh.models.runtime.stem_base import BaseEstimate
+    nothing = lambda *a: BaseEstimate(None, 0.1, 0.0, "none")
+    assert find(perc(base_finder=nothing), ["width_disagrees_rope"]).status == "unconfirmed"
     # no network: the edge tracker follows the stem down to the ground; that end is a bound,
     # not a base, unless the option makes it one
     b = find(perc(), [])
@@ -125,10 +134,11 @@ def test_a_network_base_above_the_segmented_stem_is_a_bush_in_front_not_the_foot
     rgb, tree, ground, cam, edges, axis = _level_stem()
     gray = rgb.astype(np.float32).mean(2)
 
-    def find(base_row, mask=tree, config=None):
+    def find(base_row, mask=tree, config=None, extra=None):
         finder = lambda *a: SimpleNamespace(xy=(240.0, base_row), p_base=0.95)
         p = Perception(rgb=rgb, camera=cam, rope_xy=np.array([240.0, 320.0]), rope_dir=np.array([1.0, 0.0]),
-                       rope_half_px=2.0, tree_mask=mask, ground_mask=ground, base_finder=finder)
+                       rope_half_px=2.0, tree_mask=mask, ground_mask=ground, base_finder=finder,
+                       extra=extra or {})
         flags = []
         return find_stem_base(p, gray, edges, axis, {}, MeasureResult(photo=""), flags, config), flags
 
@@ -149,3 +159,6 @@ def test_a_network_base_above_the_segmented_stem_is_a_bush_in_front_not_the_foot
     assert find(449.0)[0].status == "network"
     assert find(430.0)[0].status == "network"                            # 0.15 of the span above the mask's end
     assert find(430.0, config=StemBaseConfig(mask_overrun_max=0.1))[0].status == "occluded"
+    # a tree mask drawn from the rope band (the segmenter missed the stem) runs past any base:
+    # it is not a segmented stem, so it refuses none
+    assert find(390.0, extra={"tree_mask_from_rope": True})[0].status == "network"

@@ -33,8 +33,9 @@ class StemBase:
     ----------
     xy : (2,) the stem's front contact with the ground (pixels), or None.
     status : "user" (tapped), "network" / "network_weak" (the stem-base network, its probability
-        at least / under :attr:`~.config.StemBaseConfig.p_strong`), "unconfirmed" (no segmented
-        stem or edges to confirm a tracked base: not looked for), "tracked" (the edge tracker
+        at least / under :attr:`~.config.StemBaseConfig.p_strong`), "unconfirmed" (the network saw
+        no base, and there is no segmented stem or no edges to confirm a tracked one: the
+        tracker does not run), "tracked" (the edge tracker
         ended on what looks like the ground: a bound, not a base, unless
         :attr:`~.config.StemBaseConfig.tracked_base_sets_scale`), or the edge tracker's status
         ("ground" with that option, "occluded", "off_mask", "edge", "lost"); "occluded" also
@@ -103,7 +104,8 @@ def _base_from_network(perc: Perception, edges: TrunkEdges, axis: StemAxis, up_s
     if not est:
         return None
     xy = np.asarray(est.xy, np.float64)
-    end = _below_visible_stem(perc, edges, xy, config)
+    # (a tree mask drawn from the rope band is no segmented stem to see past the base)
+    end = None if perc.extra.get("tree_mask_from_rope") else _below_visible_stem(perc, edges, xy, config)
     if end is not None:
         # the stem is seen lower than that "base": something in front of the stem ends there
         flags.append("stem_base_above_visible_stem")
@@ -118,21 +120,22 @@ def find_stem_base(perc: Perception, gray: np.ndarray, edges: TrunkEdges, axis: 
     """The stem's base: where the user tapped (``perc.base_xy``), else the stem-base network's,
     else the edge tracker's (its outcome in ``res.debug["base_tracked"]``).
 
-    Without a segmented stem to confirm where tracked edges end (the tree mask is the rope's band)
-    or with edges that are not the stem's (``width_disagrees_rope`` in ``flags``), neither the
-    network nor the tracker looks for the base (status "unconfirmed"). ``gray`` (H, W) float32.
+    The network reads the strip below the rope whatever the mask and edges. Without a segmented
+    stem to confirm where tracked edges end (the tree mask is the rope's band) or with edges that
+    may not be the stem's (``width_disagrees_rope`` in ``flags``), the tracker does not follow
+    them (status "unconfirmed" where the network saw no base). ``gray`` (H, W) float32.
     """
     cfg = config or StemBaseConfig()
     if perc.base_xy is not None:
         flags.append("stem_base_from_user")
         return StemBase(np.asarray(perc.base_xy, np.float64), "user")
-    unconfirmed = bool(perc.extra.get("tree_mask_from_rope") or "width_disagrees_rope" in flags)
-    if unconfirmed:
-        return StemBase(None, "unconfirmed")
     if perc.base_finder is not None:
         base = _base_from_network(perc, edges, axis, up_sources, res, flags, cfg, up_config)
         if base is not None:
             return base
+    if perc.extra.get("tree_mask_from_rope") or "width_disagrees_rope" in flags:
+        # no segmented stem to tell where tracked edges end, or edges that may not be the stem's
+        return StemBase(None, "unconfirmed")
     xy, status, info = track_stem_base(gray, edges, perc.ground_mask, perc.tree_mask, rgb=perc.rgb,
                                        rope_half_px=perc.rope_half_px, config=cfg)
     res.debug["base_tracked"] = (xy, status, info)
