@@ -7,11 +7,11 @@ from typing import List, Optional
 import typer
 
 #: the networks ``dbh train`` trains, by kind (the manifest's, the registry's and the file's name)
-KINDS = ("segmenter", "depth", "tree", "stem_base", "rope_verifier", "rope_finder")
+KINDS = ("segmenter", "depth", "tree", "stem_base", "stem_edge", "rope_verifier", "rope_finder")
 
 
 def train(
-    kind: str = typer.Argument(..., help="segmenter | depth | tree | stem_base (the stem-base finder) | rope_verifier (the rope-band verifier) | rope_finder (the mask-free rope finder)"),
+    kind: str = typer.Argument(..., help="segmenter | depth | tree | stem_base (the stem-base finder) | stem_edge (the stem-edge finder) | rope_verifier (the rope-band verifier) | rope_finder (the mask-free rope finder)"),
     out: Path = typer.Option(..., "--out", "-o", help="Run folder (config.json, checkpoint.pt, log.jsonl)."),
     steps: int = typer.Option(20000, "--steps", min=1, help="Total optimiser steps."),
     resume: bool = typer.Option(False, "--resume", help="Continue from OUT/checkpoint.pt."),
@@ -69,6 +69,9 @@ def train(
     elif kind == "stem_base":
         from monodbh.models.training.stem_base import train_stem_base
         res = train_stem_base(str(out), steps, data=d, resume=resume, val_data=v, stop_at=stop_at, **opts)
+    elif kind == "stem_edge":
+        from monodbh.models.training.stem_edge import train_stem_edge
+        res = train_stem_edge(str(out), steps, data=d, resume=resume, val_data=v, stop_at=stop_at, **opts)
     elif kind == "rope_verifier":
         from monodbh.models.training.rope_verifier import train_rope_verifier
         res = train_rope_verifier(str(out), steps, data=d, resume=resume, val_data=v, stop_at=stop_at, **opts)

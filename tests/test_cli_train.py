@@ -32,13 +32,14 @@ def test_crop_is_for_the_rope_finder_only(tmp_path):
 def test_kinds_are_the_networks_names(tmp_path):
     from monodbh.cli.train_cmd import KINDS
 
-    assert KINDS == ("segmenter", "depth", "tree", "stem_base", "rope_verifier", "rope_finder")
+    assert KINDS == ("segmenter", "depth", "tree", "stem_base", "stem_edge", "rope_verifier", "rope_finder")
     r = CliRunner().invoke(app, ["train", "ropeseg", "--out", str(tmp_path / "r")])
     assert r.exit_code == 2 and "rope_finder" in r.output
     assert not (tmp_path / "r").exists()
 
 
 @pytest.mark.parametrize("kind,module,fn,key", [("stem_base", "stem_base", "train_stem_base", "lr"),
+                                                ("stem_edge", "stem_edge", "train_stem_edge", "lr"),
                                                 ("tree", "tree", "train_tree", "lr_g")])
 def test_lr_reaches_the_kinds_config(tmp_path, monkeypatch, kind, module, fn, key):
     import importlib

@@ -10,7 +10,7 @@ from monodbh.models.runtime import (ERROR_MODEL_KINDS, MANIFEST_PATH, MODELS_DIR
                                     load_manifest, load_networks)
 from monodbh.models.runtime.common import LEGACY_KINDS
 
-SHIPPED = ("segmenter", "depth", "tree", "stem_base", "rope_verifier", "rope_finder")
+SHIPPED = ("segmenter", "depth", "tree", "stem_base", "stem_edge", "rope_verifier", "rope_finder")
 
 
 def _sha256(path):
@@ -85,7 +85,7 @@ def test_old_kind_manifest_is_mapped_and_its_error_model_still_fresh(tmp_path):
 def test_optional_and_required_networks(tmp_path):
     _copy_models(tmp_path, kinds=("segmenter", "depth", "tree"))
     nets = load_networks(tmp_path, threads=1)
-    assert nets.stem_base is None and nets.rope_verifier is None and nets.rope_finder is None
+    assert nets.stem_base is None and nets.stem_edge is None and nets.rope_verifier is None and nets.rope_finder is None
     # the error model was measured with the stem-base network: without it, stale
     assert nets.error_model_stale
     man = json.loads((tmp_path / "manifest.json").read_text())

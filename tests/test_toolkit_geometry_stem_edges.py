@@ -150,3 +150,37 @@ def test_rope_without_knot_leaves_every_edge_point():
     e1 = edges_two_pass(gray, mask, perc)
     e, n = edges_off_rope_ends(perc, gray.shape, e1)
     assert n == 0 and e is e1
+
+
+def _edge_finder(left_x, right_x, mass=(0.9, 0.9)):
+    """A stand-in for the stem-edge network that answers the given photo columns (a vertical stem)."""
+    from monodbh.models.runtime.stem_edge import EdgeEstimate
+
+    def find(rgb, center_xy, along, width_px):
+        return EdgeEstimate(offsets_px=np.array([left_x, right_x]) - center_xy[0], across=np.array([1.0, 0.0]),
+                            mass=np.array(mass), px_per_col=width_px / 64.0)
+    return find
+
+
+def test_the_edge_network_moves_a_side_the_gradient_took_on_a_neighbour():
+    # the mask took in the lighter neighbour on the right and the rope does not tell (it is not
+    # there: no rope band): the gradient pair spans both trunks. The network says the stem ends at
+    # x 260: that side is searched again there, to a fraction of a pixel; the left side stays
+    from monodbh.toolkit.geometry.stem_edges import edges_from_network
+
+    rgb, mask = roped_pair(rope_to=260)
+    gray = rgb.astype(np.float32).mean(2)
+    perc = dataclasses.replace(rope_perception(rgb, mask, 201, 259), rope_band_mask=None, rope_length_px=None)
+    e1 = edges_two_pass(gray, mask, perc)
+    assert e1.right_xy[0] > 320
+    e, n = edges_from_network(dataclasses.replace(perc, edge_finder=_edge_finder(199.0, 261.0)), gray, e1)
+    assert n == 1 and abs(e.left_xy[0] - e1.left_xy[0]) < 1e-9
+    assert abs(e.right_xy[0] - 259.5) < 0.75 and abs(e.width_px - 60.0) < 1.0
+    # through stem_edges, flagged
+    edges, flags, _ = stem_edges(dataclasses.replace(perc, edge_finder=_edge_finder(199.0, 261.0)), gray)
+    assert "edges_from_network" in flags and abs(edges.width_px - 60.0) < 1.0
+    # an unsure network, or one that agrees within the tolerance, leaves the edges
+    unsure = dataclasses.replace(perc, edge_finder=_edge_finder(199.0, 261.0, mass=(0.9, 0.2)))
+    assert edges_from_network(unsure, gray, e1)[1] == 0
+    agree = dataclasses.replace(perc, edge_finder=_edge_finder(e1.left_xy[0] + 0.5, e1.right_xy[0] - 1.0))
+    assert edges_from_network(agree, gray, e1)[1] == 0

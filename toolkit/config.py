@@ -35,6 +35,8 @@ class MeasureConfig:
         (docs/decisions/threads.md); the error model is valid only for the setting it was measured with.
     stem_base_threshold : the stem-base network's probability needed to use its base
         (docs/decisions/stem-base.md).
+    edge_network : the stem-edge network (where shipped) checks the stem's edges at the rope
+        (docs/decisions/stem-edge-network.md).
     ort_spin : onnxruntime's idle threads spin between work items instead of sleeping (faster
         alone on a machine, slower beside the rope search on 2 cores; docs/decisions/threads.md).
         Default: the environment variable ``MONODBH_ORT_SPIN=1``, else off.
@@ -54,6 +56,7 @@ class MeasureConfig:
     overlap_networks: bool = True
     depth_mirror_average: bool = True
     stem_base_threshold: float = 0.7
+    edge_network: bool = True
     ort_spin: bool = field(default_factory=lambda: os.environ.get("MONODBH_ORT_SPIN", "0") == "1")
     sideways_score_max: float = -60.0
     edge_mask_zoom: float | None = 0.3

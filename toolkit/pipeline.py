@@ -57,6 +57,7 @@ class Session:
         self.trees = nets.tree
         # the optional networks: None when not shipped
         self.base = nets.stem_base
+        self.edge = nets.stem_edge if self.config.edge_network else None
         self.rope_verifier = nets.rope_verifier
         self.rope_finder = nets.rope_finder
         self.models_dir = nets.models_dir
@@ -388,6 +389,7 @@ def _perception(frame: WorkFrame, choice: RopeChoice, stem: _Stem, ruler, ground
         tree_mask=stem.tree_mask, ground_mask=ground_mask, depth_job=depth_job, depth_is_metric=False,
         silhouette_fn=silhouette, source="network",
         base_finder=None if sess.base is None else sess.base.find,
+        edge_finder=None if sess.edge is None else sess.edge.find,
         edge_search_px=max(3.0, 0.5 * cell), edge_mask=emask | stem.band_mask,
         sigma_network=sess.sigma_network, rank_network=sess.rank_network,
         distance_calibration=sess.distance_calibration,

@@ -182,6 +182,7 @@ KIND_MODULES: dict[str, str] = {
     "depth": "monodbh.models.modeling.cden",
     "tree": "monodbh.models.modeling.tree",
     "stem_base": "monodbh.models.modeling.stem_base",
+    "stem_edge": "monodbh.models.modeling.stem_edge",
     "rope_verifier": "monodbh.models.modeling.rope_verifier",
     "rope_finder": "monodbh.models.modeling.rope_finder",
 }

@@ -8,6 +8,7 @@ onnxruntime and ``monodbh.calib.errors`` (no torch).
 * ``depth``: :mod:`.depth`, :class:`DepthPredictor`, ``models/depth_int8.onnx`` (CDEN architecture)
 * ``tree``: :mod:`.tree`, :class:`TreePredictor`, ``models/tree_int8.onnx``
 * ``stem_base``: :mod:`.stem_base`, :class:`StemBaseFinder`, ``models/stem_base_int8.onnx``
+* ``stem_edge``: :mod:`.stem_edge`, :class:`StemEdgeFinder`, ``models/stem_edge_int8.onnx``
 * ``rope_verifier``: :mod:`.rope_verifier`, :class:`RopeVerifier`, ``models/rope_verifier_int8.onnx``
 * ``rope_finder``: :mod:`.rope_finder`, :class:`RopeFinder`, ``models/rope_finder_int8.onnx``
 
@@ -22,8 +23,9 @@ from monodbh.models.runtime.rope_finder import RopeFinder, RopeFinderConfig
 from monodbh.models.runtime.rope_verifier import RopeVerifier
 from monodbh.models.runtime.segmenter import Segmenter, SegmentationResult
 from monodbh.models.runtime.stem_base import BaseEstimate, StemBaseFinder
+from monodbh.models.runtime.stem_edge import EdgeEstimate, StemEdgeFinder
 from monodbh.models.runtime.tree import TreePredictor
 
 __all__ = ["MANIFEST_PATH", "MODELS_DIR", "OnnxPredictor", "load_manifest", "Segmenter", "SegmentationResult",
-           "DepthPredictor", "TreePredictor", "StemBaseFinder", "BaseEstimate", "RopeVerifier", "RopeFinder",
+           "DepthPredictor", "TreePredictor", "StemBaseFinder", "BaseEstimate", "StemEdgeFinder", "EdgeEstimate", "RopeVerifier", "RopeFinder",
            "RopeFinderConfig", "ERROR_MODEL_KINDS", "Networks", "fresh_error_model", "load_networks"]

@@ -35,7 +35,7 @@ from monodbh.calib.errors import MonodbhError
 __all__ = ["MODELS_DIR", "MANIFEST_PATH", "SPEC_METADATA_KEY", "LEGACY_KINDS", "IMAGENET_MEAN",
            "IMAGENET_STD", "MEAN_RGB", "MEAN_RGB_U8", "MonodbhError", "canonical_kind", "load_manifest",
            "session_options", "OnnxPredictor", "normalize_rgb", "preprocess_image", "to_uint8",
-           "stack_feed", "affine_region", "affine_inside"]
+           "stack_feed", "affine_region", "affine_inside", "affine_patch"]
 
 #: folder of the shipped ``*.onnx`` files and ``manifest.json`` (the ``monodbh.models`` package)
 MODELS_DIR = Path(__file__).resolve().parent.parent
@@ -305,3 +305,44 @@ def affine_inside(A: np.ndarray, out_w: int, out_h: int, width: int, height: int
     px = A[0, 0] * cols + A[0, 1] * rows + A[0, 2]
     py = A[1, 0] * cols + A[1, 1] * rows + A[1, 2]
     return (px >= 0) & (px <= width - 1) & (py >= 0) & (py <= height - 1)
+
+
+def affine_patch(rgb: np.ndarray, A: np.ndarray, out_w: int, out_h: int, sx: float,
+                 sy: float) -> tuple[np.ndarray, np.ndarray]:
+    """Resample an ``out_h x out_w`` patch of the photo through the affine map ``A``.
+
+    Parameters
+    ----------
+    rgb : (H, W, 3) uint8 photo.
+    A : (2, 3) affine map from patch pixel ``(col, row)`` to photo pixel ``(x, y)``.
+    out_w, out_h : patch size.
+    sx, sy : photo pixels per patch column / row (where above 1.25, the photo is blurred first,
+        each axis by its own factor, so that the shrink does not alias).
+
+    Returns
+    -------
+    (patch, inside): ``(out_h, out_w, 3)`` uint8 (outside the photo: :data:`MEAN_RGB_U8`) and
+    ``(out_h, out_w)`` bool, True where the patch lies inside the photo.
+    """
+    H, W = rgb.shape[:2]
+    shrink = max(sx, sy)
+    x0, y0, x1, y1 = affine_region(A, out_w, out_h, shrink, W, H)
+    inside = np.zeros((out_h, out_w), bool)
+    if x1 <= x0 or y1 <= y0:
+        out = np.empty((out_h, out_w, 3), np.uint8)
+        out[...] = MEAN_RGB_U8
+        return out, inside
+    roi = rgb[y0:y1, x0:x1].astype(np.float32)
+    if shrink > 1.25:      # anti-alias before shrinking (each axis by its own factor)
+        sgx, sgy = 0.5 * math.sqrt(max(sx * sx - 1.0, 0.0)), 0.5 * math.sqrt(max(sy * sy - 1.0, 0.0))
+        roi = cv2.GaussianBlur(roi, (0, 0), sigmaX=max(sgx, 0.01), sigmaY=max(sgy, 0.01),
+                               borderType=cv2.BORDER_REPLICATE)
+    Ar = A.copy()
+    Ar[:, 2] -= (x0, y0)
+    # warpAffine maps destination -> source with WARP_INVERSE_MAP
+    out = cv2.warpAffine(roi, Ar, (out_w, out_h), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                         borderMode=cv2.BORDER_CONSTANT, borderValue=MEAN_RGB)
+    inside = affine_inside(A, out_w, out_h, W, H)
+    out = to_uint8(out)
+    out[~inside] = MEAN_RGB_U8
+    return out, inside

@@ -19,6 +19,7 @@ from monodbh.models.runtime.rope_finder import RopeFinder
 from monodbh.models.runtime.rope_verifier import RopeVerifier
 from monodbh.models.runtime.segmenter import Segmenter
 from monodbh.models.runtime.stem_base import StemBaseFinder
+from monodbh.models.runtime.stem_edge import StemEdgeFinder
 from monodbh.models.runtime.tree import TreePredictor
 
 __all__ = ["ERROR_MODEL_KINDS", "fresh_error_model", "Networks", "load_networks"]
@@ -66,6 +67,8 @@ class Networks:
     tree : TreePredictor
     stem_base : StemBaseFinder or None
         None when none is shipped (the edge tracker then looks for the stem base alone).
+    stem_edge : StemEdgeFinder or None
+        None when none is shipped (the stem's edges are then the photo's gradients near the mask's).
     rope_verifier : RopeVerifier or None
         None when none is shipped (the stem search's own score then decides).
     rope_finder : RopeFinder or None
@@ -86,6 +89,7 @@ class Networks:
     depth: DepthPredictor
     tree: TreePredictor
     stem_base: StemBaseFinder | None
+    stem_edge: StemEdgeFinder | None
     rope_verifier: RopeVerifier | None
     rope_finder: RopeFinder | None
     models_dir: Path
@@ -170,6 +174,7 @@ def load_networks(models_dir: str | Path | None = None, *, threads: int = 2, dep
     models = manifest.get("models", {})
     opts = dict(threads=threads, spin=spin)
     stem_base = _optional(models, mdir, "stem_base")
+    stem_edge = _optional(models, mdir, "stem_edge")
     rope_verifier = _optional(models, mdir, "rope_verifier")
     rope_finder = _optional(models, mdir, "rope_finder")
     em = fresh_error_model(manifest, depth_flip_tta)
@@ -179,6 +184,7 @@ def load_networks(models_dir: str | Path | None = None, *, threads: int = 2, dep
         tree=TreePredictor(_required(models, mdir, "tree"), **opts),
         stem_base=None if stem_base is None else StemBaseFinder(stem_base, manifest=manifest,
                                                                 threshold=stem_base_threshold, **opts),
+        stem_edge=None if stem_edge is None else StemEdgeFinder(stem_edge, manifest=manifest, **opts),
         rope_verifier=None if rope_verifier is None else RopeVerifier(rope_verifier, manifest=manifest, **opts),
         rope_finder=None if rope_finder is None else RopeFinder(rope_finder, manifest=manifest, **opts),
         models_dir=mdir,

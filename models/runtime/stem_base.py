@@ -23,16 +23,13 @@ inference cut identical strips); imports numpy, cv2 and ``monodbh.models.runtime
 """
 from __future__ import annotations
 
-import math
 import os
 from dataclasses import dataclass
 from typing import Any
 
-import cv2
 import numpy as np
 
-from monodbh.models.runtime.common import (MEAN_RGB, MEAN_RGB_U8, OnnxPredictor, affine_inside, affine_region,
-                                           stack_feed, to_uint8)
+from monodbh.models.runtime.common import OnnxPredictor, affine_patch, stack_feed
 
 __all__ = ["STRIP_H", "STRIP_W", "STRIP_ROWS_PER_W", "STRIP_SPAN_W", "STRIP_LEN_W",
            "strip_geometry", "stem_strip", "strip_feed", "strip_row_to_xy", "decode_base_logits",
@@ -96,32 +93,8 @@ def stem_strip(rgb: np.ndarray, top_xy, along, width_px: float) -> tuple[np.ndar
     """
     if rgb.ndim != 3 or rgb.shape[2] != 3:
         raise ValueError(f"stem_strip: expected an (H, W, 3) photo, got {rgb.shape}")
-    H, W = rgb.shape[:2]
     A = strip_geometry(top_xy, along, width_px)
-    sx = width_px * STRIP_SPAN_W / STRIP_W
-    sy = width_px / STRIP_ROWS_PER_W
-    # region of the photo the strip touches (only that part is blurred / resampled)
-    shrink = max(sx, sy)
-    x0, y0, x1, y1 = affine_region(A, STRIP_W, STRIP_H, shrink, W, H)
-    inside = np.zeros((STRIP_H, STRIP_W), bool)
-    if x1 <= x0 or y1 <= y0:
-        out = np.empty((STRIP_H, STRIP_W, 3), np.uint8)
-        out[...] = MEAN_RGB_U8
-        return out, inside
-    roi = rgb[y0:y1, x0:x1].astype(np.float32)
-    if shrink > 1.25:      # anti-alias before shrinking (each axis by its own factor)
-        sgx, sgy = 0.5 * math.sqrt(max(sx * sx - 1.0, 0.0)), 0.5 * math.sqrt(max(sy * sy - 1.0, 0.0))
-        roi = cv2.GaussianBlur(roi, (0, 0), sigmaX=max(sgx, 0.01), sigmaY=max(sgy, 0.01),
-                               borderType=cv2.BORDER_REPLICATE)
-    Ar = A.copy()
-    Ar[:, 2] -= (x0, y0)
-    # warpAffine maps destination -> source with WARP_INVERSE_MAP
-    out = cv2.warpAffine(roi, Ar, (STRIP_W, STRIP_H), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
-                         borderMode=cv2.BORDER_CONSTANT, borderValue=MEAN_RGB)
-    inside = affine_inside(A, STRIP_W, STRIP_H, W, H)
-    out = to_uint8(out)
-    out[~inside] = MEAN_RGB_U8
-    return out, inside
+    return affine_patch(rgb, A, STRIP_W, STRIP_H, width_px * STRIP_SPAN_W / STRIP_W, width_px / STRIP_ROWS_PER_W)
 
 
 def strip_feed(strip: np.ndarray, inside: np.ndarray) -> np.ndarray:

@@ -941,6 +941,7 @@ TRAINING_MODULES: dict[str, str] = {
     "depth": "monodbh.models.training.depth",
     "tree": "monodbh.models.training.tree",
     "stem_base": "monodbh.models.training.stem_base",
+    "stem_edge": "monodbh.models.training.stem_edge",
     "rope_verifier": "monodbh.models.training.rope_verifier",
     "rope_finder": "monodbh.models.training.rope_finder",
 }

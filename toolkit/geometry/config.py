@@ -85,6 +85,13 @@ class StemEdgesConfig:
     #: the second pass (sampled across the stem as first found) is kept unless its width differs
     #: from the first by this fraction or more
     second_pass_max_change: float = 0.5
+    #: the stem-edge network moves a side where its edge and the gradient's are more than this many
+    #: pixels apart ... (stem-edge-network.md)
+    edge_net_tol_px: float = 1.0
+    #: ... and this fraction of the stem's width ...
+    edge_net_tol_frac: float = 0.015
+    #: ... and the network's probability mass around its edge is at least this
+    edge_net_min_mass: float = 0.3
 
 
 @dataclass(frozen=True)

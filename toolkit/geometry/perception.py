@@ -55,6 +55,7 @@ class Perception:
     edge_mask: np.ndarray | None = None  # (H, W) bool mask guiding the edge search (default tree_mask)
     base_xy: np.ndarray | None = None   # (2,) stem base pixel given by the user (front contact with the ground)
     base_finder: object = None      # callable(rgb, top_xy, along, width_px) -> BaseEstimate (the stem-base network) or None
+    edge_finder: object = None      # callable(rgb, center_xy, along, width_px) -> EdgeEstimate (the stem-edge network) or None
     rope_length_px: float | None = None  # length of the rope band across the stem (pixels)
     rope_polyline: np.ndarray | None = None  # (N, 2) the rope's centre line across the stem (pixels)
     rope_band_mask: np.ndarray | None = None  # (H, W) bool band as wide as the rope's extent

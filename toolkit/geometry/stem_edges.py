@@ -17,7 +17,8 @@ from .edges import (REASON_OUT_OF_PHOTO, TrunkEdges, band_mask, combine_edges, r
                     rope_row_contrast, sample_image, trunk_edges)
 from .perception import Perception
 
-__all__ = ["stem_edges", "edges_two_pass", "edges_checked_by_rope", "edges_out_to_rope_end", "edges_off_rope_ends"]
+__all__ = ["stem_edges", "edges_two_pass", "edges_from_network", "edges_checked_by_rope", "edges_out_to_rope_end",
+           "edges_off_rope_ends"]
 
 
 def edges_two_pass(gray: np.ndarray, mask: np.ndarray, perc: Perception, config: StemEdgesConfig | None = None,
@@ -36,6 +37,45 @@ def edges_two_pass(gray: np.ndarray, mask: np.ndarray, perc: Perception, config:
         if e2 and abs(e2.width_px / edges.width_px - 1) < cfg.second_pass_max_change:
             edges = e2
     return edges
+
+
+def edges_from_network(perc: Perception, gray: np.ndarray, edges: TrunkEdges, config: StemEdgesConfig | None = None,
+                       edge_config: EdgeConfig | None = None) -> tuple[TrunkEdges, int]:
+    """The edges checked by the stem-edge network (``perc.edge_finder``): ``(edges, n_sides)``.
+
+    The network reads a patch across the stem at the rope (centred between ``edges``, as wide)
+    and says where each edge is. A side more than ``config.edge_net_tol_px`` pixels and
+    ``config.edge_net_tol_frac`` of the width from the network's edge, where the network's
+    probability mass there is at least ``config.edge_net_min_mass``, is searched again on the
+    photo's gradient next to the network's edge (a band mask between the network's two edges
+    guides :func:`~.edges.trunk_edges`, within 1.5 px or two of the network's columns); the
+    other side stays. ``n_sides`` says how many sides moved (0: ``edges`` itself).
+    """
+    cfg = config or StemEdgesConfig()
+    if perc.edge_finder is None or not edges:
+        return edges, 0
+    mid = 0.5 * (np.asarray(edges.left_xy, np.float64) + np.asarray(edges.right_xy, np.float64))
+    est = perc.edge_finder(perc.rgb, mid, edges.along, float(edges.width_px))
+    u = np.asarray(est.across, np.float64)
+    s_grad = np.array([(edges.left_xy - mid) @ u, (edges.right_xy - mid) @ u])
+    tol = max(cfg.edge_net_tol_px, cfg.edge_net_tol_frac * float(edges.width_px))
+    move = (np.abs(est.offsets_px - s_grad) > tol) & (np.asarray(est.mass) >= cfg.edge_net_min_mass)
+    if not move.any() or not est.offsets_px[1] - est.offsets_px[0] > 2.0:
+        return edges, 0
+    half_len = 4.0 * float(edges.width_px) + 40.0
+    lo, hi = float(est.offsets_px[0]), float(est.offsets_px[1])
+    c_net = mid + 0.5 * (lo + hi) * u            # on the same cross-section line, between the network's edges
+    guide = band_mask(gray.shape, c_net, u, lo - 0.5 * (lo + hi), hi - 0.5 * (lo + hi), half_len)
+    e_net = trunk_edges(gray, guide, c_net, u, rope_half_px=perc.rope_half_px,
+                        search_px=max(1.5, 2.0 * est.px_per_col), config=edge_config)
+    if not e_net:
+        return edges, 0
+    left = e_net if move[0] else edges
+    right = e_net if move[1] else edges
+    out = combine_edges(left, right, frame=edges)
+    if not out.width_px > 0:
+        return edges, 0
+    return out, int(move.sum())
 
 
 def _rope_contrast_fn(perc: Perception, gray_shape: tuple[int, int], edges: TrunkEdges, reach_px: float,
@@ -347,6 +387,11 @@ def stem_edges(perc: Perception, gray: np.ndarray, config: StemEdgesConfig | Non
     emask = perc.tree_mask if perc.edge_mask is None else perc.edge_mask
     edges = edges_two_pass(gray, emask, perc, cfg, edge_config)
     flags: list[str] = []
+    if edges:
+        # the network tells the stem's own edges from a neighbour's, a shadow's or the ground's
+        edges, n_net = edges_from_network(perc, gray, edges, cfg, edge_config)
+        if n_net:
+            flags.append("edges_from_network")
     width_vs_rope = 0.0     # |ln(edge width / rope length)| when the two disagree (a sigma term)
     if edges and perc.rope_band_mask is not None:
         # a side where the coarse mask runs on beyond the rope's end with no rope there is a

@@ -77,6 +77,7 @@ FLAG_TEXT = {
     "edges_from_rope_band": "the stem edges were taken at the marker's ends (neighbouring trunk)",
     "edges_out_to_rope_end": "a stem edge was moved out to where the marker ends (outline inside the stem)",
     "edge_points_on_rope_end": "edge points on the marker's knot or loose ends were left out",
+    "edges_from_network": "the stem-edge network moved a stem edge off a neighbour, shadow or background border",
     "width_disagrees_rope": "the stem edges are much wider than the marker: sigma widened",
     "rope_from_stem_profile": "the marker was found as a faint red row across the trunk",
     "rope_verified_by_network": "the faint marker was confirmed by the rope-verifier network",
