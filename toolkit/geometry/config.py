@@ -91,7 +91,7 @@ class StemEdgesConfig:
     #: ... and this fraction of the stem's width ...
     edge_net_tol_frac: float = 0.015
     #: ... and the network's probability mass around its edge is at least this
-    edge_net_min_mass: float = 0.3
+    edge_net_min_mass: float = 0.85
 
 
 @dataclass(frozen=True)
