@@ -61,7 +61,7 @@ FLAG_TEXT = {
                                      "it only bounds the distance"),
     "stem_base_lost": "the stem's edges could not be followed down to the foot",
     "stem_base_off_mask": "the stem's edges ran off the segmented trunk before the foot",
-    "stem_base_unconfirmed": "no stem foot was looked for (stem edges not confirmed)",
+    "stem_base_unconfirmed": "no stem foot found (the stem-base network saw none; unconfirmed stem edges were not followed down)",
     "stem_base_ground": "the stem's foot was traced on the ground",
     "rope_too_thin_for_scale": "the marker is too thin in the photo to set the scale",
     "marker_not_read_for_scale": "the marker was found but its thickness could not be read",
