@@ -11,7 +11,7 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-__all__ = ["ConvBNAct", "BasicBlock", "MLP", "sine_position_encoding", "count_parameters",
+__all__ = ["ConvBNAct", "BasicBlock", "Res1d", "MLP", "sine_position_encoding", "count_parameters",
            "NEG_INF"]
 
 #: Large negative float used for additive attention masks (finite: safe for softmax, fp16 and
@@ -34,6 +34,22 @@ class ConvBNAct(nn.Sequential):
         if act is not None:
             layers.append(act())
         super().__init__(*layers)
+
+
+class Res1d(nn.Module):
+    """1-D residual block: dilated 3-tap Conv1d (no bias) -> BatchNorm1d, added to the input, ReLU.
+
+    Shapes: ``(B, c, L) -> (B, c, L)`` (``d``: the dilation, also the padding).
+    """
+
+    def __init__(self, c: int, d: int) -> None:
+        super().__init__()
+        self.conv = nn.Conv1d(c, c, 3, padding=d, dilation=d, bias=False)
+        self.bn = nn.BatchNorm1d(c)
+        self.act = nn.ReLU(inplace=True)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.act(x + self.bn(self.conv(x)))
 
 
 class BasicBlock(nn.Module):

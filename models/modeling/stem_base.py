@@ -19,6 +19,7 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
+from monodbh.models.modeling.common import Res1d
 from monodbh.models.modeling.registry import IMAGENET_MEAN, IMAGENET_STD, ModelSpec, Preprocess, TensorSpec, register
 from monodbh.models.runtime.stem_base import STRIP_H, STRIP_ROWS_PER_W, STRIP_SPAN_W, STRIP_W
 
@@ -41,17 +42,6 @@ STEM_BASE_CONFIGS: dict[str, StemBaseNetConfig] = {
 }
 
 
-class _Res1d(nn.Module):
-    def __init__(self, c: int, d: int) -> None:
-        super().__init__()
-        self.conv = nn.Conv1d(c, c, 3, padding=d, dilation=d, bias=False)
-        self.bn = nn.BatchNorm1d(c)
-        self.act = nn.ReLU(inplace=True)
-
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return self.act(x + self.bn(self.conv(x)))
-
-
 class StemBaseNet(nn.Module):
     """See the module docstring. ``forward(strip (B, 4, H, W)) -> logits (B, H + 1)``."""
 
@@ -67,7 +57,7 @@ class StemBaseNet(nn.Module):
         self.stage2d = nn.Sequential(*layers)
         self.proj = nn.Sequential(nn.Conv1d(cin, cfg.seq_ch, 1, bias=False), nn.BatchNorm1d(cfg.seq_ch),
                                   nn.ReLU(inplace=True))
-        self.stage1d = nn.Sequential(*[_Res1d(cfg.seq_ch, d) for d in cfg.dilations])
+        self.stage1d = nn.Sequential(*[Res1d(cfg.seq_ch, d) for d in cfg.dilations])
         self.row_head = nn.Conv1d(cfg.seq_ch, 1, 1)
         self.none_head = nn.Linear(2 * cfg.seq_ch, 1)
 

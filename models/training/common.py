@@ -52,6 +52,7 @@ __all__ = [
     "resize_sample", "SPATIAL_KEYS", "TRAINING_MODULES", "register_calibration",
     "calibration_inputs", "register_eval", "evaluate_kind", "load_run_model", "atomic_torch_save", "pack_weights", "load_packed_weights",
     "atomic_write_text", "warmup_cosine", "binary_auc", "bank_source", "bank_run_sources",
+    "resumed_folder_run", "held_out_split", "held_out_bank",
 ]
 
 # --------------------------------------------------------------------------- reproducibility
@@ -716,6 +717,57 @@ def bank_run_sources(run_dir: str | os.PathLike, resume: bool, options: dict[str
         data = data if data is not None else old.get("data")
         val_data = val_data if val_data is not None else old.get("val_data")
     return options, source_fn(data), (source_fn(val_data) if val_data is not None else None)
+
+
+def resumed_folder_run(run_dir: str | os.PathLike, resume: bool, options: dict[str, Any], data: Any,
+                       val_data: Any) -> tuple[dict[str, Any], Any, Any, int | None]:
+    """``(options, data, val_data, train_indices)`` of a run that cuts its examples from
+    ``dbh synth`` folders (the stem-base and stem-edge networks).
+
+    On ``resume`` the run's own config.json fills in what the call leaves out (its options under
+    the call's, its ``data`` and validation folders where the call gives none) and gives the
+    number of training samples its bank was cut from (None for a new run), so that the same bank
+    is cut again.
+    """
+    run = RunDir(run_dir)
+    if not (resume and run.config_path.exists()):
+        return options, data, val_data, None
+    old = run.read_config()
+    options = {**old.get("train", {}), **options}
+    data = data if data is not None else old.get("data")
+    val_data = val_data if val_data is not None else (old.get("val_data") or {}).get("folders")
+    return options, data, val_data, old.get("train_indices")
+
+
+def held_out_split(src: DataSource, vsrc: DataSource | None, val_n: int, train_indices: int | None
+                   ) -> tuple[DataSource, list[int], list[int]]:
+    """``(validation source, training indices, validation indices)``: the first ``val_n`` samples
+    of ``vsrc`` and all of ``src``; without ``vsrc``, the last ``val_n`` samples of ``src``, left
+    out of training. ``train_indices`` (a resumed run's) keeps the training bank's first samples."""
+    n = src.n
+    if vsrc is not None:
+        val_idx = list(range(min(val_n, vsrc.n)))
+        train_idx = list(range(n))
+    else:
+        vsrc = src
+        val_idx = list(range(max(0, n - val_n), n))
+        train_idx = list(range(0, max(0, n - val_n)))
+    if train_indices is not None:
+        train_idx = list(range(int(train_indices)))    # the same bank on resume
+    return vsrc, train_idx, val_idx
+
+
+def held_out_bank(cache: dict[str, Any], kind: str, data: DataSource | None, n: int, val_n: int,
+                  build: Callable[[DataSource, list[int]], dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
+    """Up to ``n`` examples of the bank ``build(data, indices)`` cuts from the last ``val_n``
+    samples of ``data`` (the held-out end of the folder), kept in ``cache`` while ``data`` is the
+    same source of the same length (``dbh export`` scores every int8 recipe on the same bank)."""
+    if data is None:
+        raise ValueError(f"{kind} export needs data (the run's config.json names its folders)")
+    if cache.get("data") is not data or cache.get("n") != data.n:
+        idx = list(range(max(0, data.n - val_n), data.n))
+        cache.update(data=data, n=data.n, bank=build(data, idx))
+    return {k: v[:n] for k, v in cache["bank"].items()}
 
 
 def source_from_config(cfg: dict[str, Any]) -> DataSource:

@@ -37,9 +37,10 @@ from monodbh.models.modeling.registry import build
 from monodbh.models.runtime.stem_base import (STRIP_H, STRIP_ROWS_PER_W, decode_base_logits, stem_strip,
                                          strip_feed)
 from monodbh.models.synthetic import base_in_view, stem_base_pixel
-from monodbh.models.training.common import (AugmentConfig, DataSource, config_from_dict, make_source,
-                                            photometric, register_calibration, register_eval, select_device,
-                                            train_loop, warmup_cosine)
+from monodbh.models.training.common import (AugmentConfig, DataSource, config_from_dict, held_out_bank,
+                                            held_out_split, make_source, photometric, register_calibration,
+                                            register_eval, resumed_folder_run, select_device, train_loop,
+                                            warmup_cosine)
 from monodbh.models.training.depth import undistort_sample
 from monodbh.models.training.tree import stem_point_cam
 
@@ -257,32 +258,13 @@ def train_stem_base(run_dir: str, steps: int = 3000, data: Any = None, resume: b
     -------
     dict ``{"step", "val", "bank"}``.
     """
-    from monodbh.models.training.common import RunDir
-
-    run = RunDir(run_dir)
-    if resume and run.config_path.exists():
-        old = run.read_config()
-        options = {**old.get("train", {}), **options}
-        data = data if data is not None else old.get("data")
-        val_data = val_data if val_data is not None else (old.get("val_data") or {}).get("folders")
-        train_idx_old = old.get("train_indices")
-    else:
-        train_idx_old = None
+    options, data, val_data, train_indices = resumed_folder_run(run_dir, resume, options, data, val_data)
     cfg = StemBaseTrainConfig.from_dict(options)
     device = select_device(cfg.threads)
     torch.manual_seed(cfg.seed)
     src = _source(data, cfg.seed)
-    n = src.n
-    if val_data is not None:
-        vsrc = _source(val_data, cfg.seed + 1)
-        val_idx = list(range(min(cfg.val_n, vsrc.n)))
-        train_idx = list(range(n))
-    else:
-        vsrc = src
-        val_idx = list(range(max(0, n - cfg.val_n), n))
-        train_idx = list(range(0, max(0, n - cfg.val_n)))
-    if train_idx_old is not None:
-        train_idx = list(range(int(train_idx_old)))    # the same bank on resume
+    vsrc, train_idx, val_idx = held_out_split(src, None if val_data is None else _source(val_data, cfg.seed + 1),
+                                              cfg.val_n, train_indices)
     bank = build_bank(src, train_idx, cfg, cfg.seed, cfg.jitters, verbose)
     vbank = build_bank(vsrc, val_idx, cfg, cfg.seed + 1, 0, verbose)
     if verbose:
@@ -357,13 +339,9 @@ _EVAL_BANK: dict[str, Any] = {}
 def _eval_bank(n: int, seed: int, data: DataSource | None) -> dict[str, np.ndarray]:
     """Up to ``n`` exact strips of the last ``val_n`` samples of ``data`` (the held-out end of
     the folder); unjittered, so ``seed`` does not change them."""
-    if data is None:
-        raise ValueError("stem_base export needs data (the run's config.json names its folders)")
-    if _EVAL_BANK.get("data") is not data or _EVAL_BANK.get("n") != data.n:
-        cfg = StemBaseTrainConfig()
-        idx = list(range(max(0, data.n - cfg.val_n), data.n))
-        _EVAL_BANK.update(data=data, n=data.n, bank=build_bank(data, idx, cfg, seed, 0, verbose=False))
-    return {k: v[:n] for k, v in _EVAL_BANK["bank"].items()}
+    cfg = StemBaseTrainConfig()
+    return held_out_bank(_EVAL_BANK, "stem_base", data, n, cfg.val_n,
+                         lambda d, idx: build_bank(d, idx, cfg, seed, 0, verbose=False))
 
 
 @register_calibration("stem_base")
