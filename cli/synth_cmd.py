@@ -34,6 +34,9 @@ def synth(
                                "(a flat red strap 20-50 mm wide) or mixed (either)."),
     stand: str = typer.Option("forest", "--stand", help="forest (a closed stand, the default), park (open-grown "
                               "trees with dense crowns on a lawn, seen from 3-25 m) or mixed (either)."),
+    foot: str = typer.Option("plain", "--foot", help="plain (the default) or clutter: grass tufts round the "
+                             "roped stem's foot on every scene and a low bush beside it on 40 % (stem-base "
+                             "training)."),
     look: str = typer.Option("default", "--look", help="default; randomized: the same scenes with their colours, "
                              "texture contrast, light and camera response randomised (for training); or heldout: "
                              "the same scenes with textures cut from the real photos, another light and another "
@@ -48,7 +51,7 @@ def synth(
         raise typer.Exit(1)
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeRemainingColumn
 
-    from monodbh.models.synthetic.scene import MARKERS, STANDS
+    from monodbh.models.synthetic.scene import FEET, MARKERS, STANDS
     W, H = parse_size(size)
     if marker not in MARKERS:
         raise typer.BadParameter(f"expected {', '.join(MARKERS[:-1])} or {MARKERS[-1]}, got {marker!r}",
@@ -56,6 +59,8 @@ def synth(
     if stand not in STANDS:
         raise typer.BadParameter(f"expected {', '.join(STANDS[:-1])} or {STANDS[-1]}, got {stand!r}",
                                  param_hint="--stand")
+    if foot not in FEET:
+        raise typer.BadParameter(f"expected {' or '.join(FEET)}, got {foot!r}", param_hint="--foot")
     from monodbh.models.synthetic.looks import HELDOUT, LOOKS
     if look not in LOOKS:
         raise typer.BadParameter(f"expected one of {', '.join(LOOKS)}, got {look!r}", param_hint="--look")
@@ -72,7 +77,8 @@ def synth(
                   TimeRemainingColumn(), transient=True) as prog:
         task = prog.add_task(f"rendering {W}x{H}", total=count)
         res = synthesize(out, count, seed, (W, H), start=start, workers=workers or None,
-                         distortion=not no_distortion, marker=marker, look=look, stand=stand, progress=lambda r: prog.advance(task))
+                         distortion=not no_distortion, marker=marker, look=look, stand=stand, foot=foot,
+                         progress=lambda r: prog.advance(task))
     typer.echo(f"{res['count']} samples in {res['seconds']:.1f} s ({res['samples_per_s']:.2f} samples/s) -> {out}",
                err=True)
     if contact:

@@ -271,3 +271,26 @@ def test_a_park_scene_is_open_grown_and_leaves_forest_scenes_alone():
     assert 0 < sum("lawn" in sc.ground for sc in mixed) < 12
     with pytest.raises(ValueError, match="stand must be one of"):
         sample_scene(np.random.default_rng(0), 64, 48, stand="jungle")
+
+
+def test_foot_clutter_adds_grass_and_bushes_at_the_roped_foot_only():
+    """``foot="clutter"``: 1-3 grass tufts round the main stem's foot on every scene and a low
+    bush beside it on some; the scene's other objects are the plain scene's."""
+    from monodbh.models.synthetic.scene import sample_scene
+    n_bush = 0
+    for k in range(10):
+        plain = sample_scene(np.random.default_rng(k), 64, 48, seed=k)
+        clut = sample_scene(np.random.default_rng(k), 64, 48, seed=k, foot="clutter")
+        base = clut.trees[0].base[:2]
+        extra = clut.grass[len(plain.grass):]
+        assert all(np.array_equal(a[0], b[0]) and a[1:] == b[1:] for a, b in zip(clut.grass, plain.grass))
+        assert 1 <= len(extra) <= 3
+        assert all(np.hypot(*(c - base)) < 1.5 and 0.08 <= h <= 0.35 for c, _, _, h in extra)
+        bushes = clut.bushes[len(plain.bushes):]
+        assert len(bushes) <= 1 and all(0.3 <= np.hypot(*(b[0][:2] - base)) <= 1.0 for b in bushes)
+        n_bush += len(bushes)
+        assert [t.base.tolist() for t in clut.trees] == [t.base.tolist() for t in plain.trees]
+        assert np.array_equal(clut.camera.K, plain.camera.K)
+    assert 0 < n_bush < 10
+    with pytest.raises(ValueError, match="foot must be one of"):
+        sample_scene(np.random.default_rng(0), 64, 48, foot="moss")

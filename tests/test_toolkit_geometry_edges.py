@@ -73,3 +73,24 @@ def test_refit_edges_moves_a_side_onto_its_kept_points():
     assert abs(r.width_px - 60.0) < 1e-6 and abs(r.along[0]) < 1e-6 and len(r.points["right"]) == 4
     # fewer than 3 points left on a side: the edges as they were
     assert refit_edges(e, {"right": np.r_[np.ones(2, bool), np.zeros(6, bool)]}) is e
+
+
+def test_combine_edges_puts_both_sides_on_the_frames_cross_section():
+    from monodbh.toolkit.geometry.edges import TrunkEdges, combine_edges
+    # a vertical stem x 100..160 at the rope row y 200; the left side was found on a line through
+    # another centre (y 230) with a tilted cross-section: its point lies 30 px lower on x 100
+    frame = TrunkEdges(left_xy=np.array([102.0, 200]), right_xy=np.array([160.0, 200]), width_px=58.0,
+                       along=np.array([0.0, 1.0]), across=np.array([1.0, 0.0]), edge_rms_px=0.5, n_lines=8,
+                       points=dict(left=np.zeros((0, 2)), right=np.zeros((0, 2))))
+    other = TrunkEdges(left_xy=np.array([100.0, 230]), right_xy=np.array([170.0, 250]), width_px=72.0,
+                       along=np.array([0.0, 1.0]), across=np.array([0.96, 0.28]), edge_rms_px=0.5, n_lines=8,
+                       points=dict(left=np.zeros((0, 2)), right=np.zeros((0, 2))))
+    e = combine_edges(other, frame, frame=frame)
+    np.testing.assert_allclose(e.left_xy, [100.0, 200.0], atol=1e-9)
+    np.testing.assert_allclose(e.right_xy, [160.0, 200.0], atol=1e-9)
+    assert abs(e.width_px - 60.0) < 1e-9
+    # a side line parallel to the cross-section (no crossing): its point stays
+    flat = TrunkEdges(left_xy=np.array([90.0, 210]), right_xy=np.array([170.0, 210]), width_px=80.0,
+                      along=np.array([1.0, 0.0]), across=np.array([0.0, 1.0]), edge_rms_px=0.5, n_lines=8,
+                      points=dict(left=np.zeros((0, 2)), right=np.zeros((0, 2))))
+    np.testing.assert_allclose(combine_edges(flat, frame, frame=frame).left_xy, [90.0, 210.0])

@@ -184,3 +184,25 @@ def test_the_edge_network_moves_a_side_the_gradient_took_on_a_neighbour():
     assert edges_from_network(unsure, gray, e1)[1] == 0
     agree = dataclasses.replace(perc, edge_finder=_edge_finder(e1.left_xy[0] + 0.5, e1.right_xy[0] - 1.0))
     assert edges_from_network(agree, gray, e1)[1] == 0
+
+
+def test_leaving_out_knot_points_never_widens_a_side(monkeypatch):
+    # the refit without the knot's points moves a side inward or keeps it; a refit that would
+    # put a side further out (its remaining points tilt the line) keeps all that side's points
+    import importlib
+    from monodbh.toolkit.geometry.edges import TrunkEdges
+    from geometry_scenes import knotted_rope_scene
+    se = importlib.import_module("monodbh.toolkit.geometry.stem_edges")
+    rgb, mask, perc = knotted_rope_scene()
+    gray = rgb.astype(np.float32).mean(2)
+    e1 = edges_two_pass(gray, mask, perc)
+    e_ok, n_ok = se.edges_off_rope_ends(perc, gray.shape, e1)
+    assert n_ok > 0 and e_ok.right_xy[0] < e1.right_xy[0]
+
+    def outward(edges, keep):          # a refit that pushes the right side 20 px out
+        return TrunkEdges(left_xy=edges.left_xy, right_xy=edges.right_xy + 20 * edges.across,
+                          width_px=edges.width_px + 20, along=edges.along, across=edges.across,
+                          edge_rms_px=edges.edge_rms_px, n_lines=edges.n_lines, points=edges.points)
+    monkeypatch.setattr(se, "refit_edges", outward)
+    e, n = se.edges_off_rope_ends(perc, gray.shape, e1)
+    assert n == 0 and e is e1

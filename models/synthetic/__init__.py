@@ -186,7 +186,7 @@ def scene_meta(scene: Scene, out: dict) -> dict:
 
 def generate_sample(seed: int, index: int = 0, size: tuple[int, int] = (512, 512), *,
                     distortion: bool = True, aa: bool = True, marker: str = "rope", look: str = "default",
-                    stand: str = "forest") -> dict:
+                    stand: str = "forest", foot: str = "plain") -> dict:
     """Render one sample.
 
     Parameters
@@ -200,6 +200,8 @@ def generate_sample(seed: int, index: int = 0, size: tuple[int, int] = (512, 512
     look : ``"default"``, ``"randomized"`` (domain randomisation) or ``"heldout"`` (for evaluation
         only; no training path accepts it): the same scene with another appearance (:mod:`.looks`).
     stand : ``"forest"`` (the default), ``"park"`` or ``"mixed"``; see :func:`~.scene.sample_scene`.
+    foot : ``"plain"`` (the default) or ``"clutter"`` (grass and a bush at the roped stem's foot);
+        see :func:`~.scene.sample_scene`.
 
     Returns
     -------
@@ -212,11 +214,13 @@ def generate_sample(seed: int, index: int = 0, size: tuple[int, int] = (512, 512
         raise ValueError(f"image size {W}x{H} is too small (min 16x16)")
     s = sample_seed(seed, index)
     rng = np.random.default_rng(s)
-    scene = sample_scene(rng, W, H, distortion=distortion, seed=s, marker=marker, stand=stand)
+    scene = sample_scene(rng, W, H, distortion=distortion, seed=s, marker=marker, stand=stand, foot=foot)
     out = render_scene(scene, rng, look=look)
     out["meta"] = scene_meta(scene, out)
     out["meta"]["look"] = look
     out["meta"]["stand"] = scene.stand
+    if foot != "plain":
+        out["meta"]["foot"] = foot
     out["meta"]["dataset_seed"] = int(seed)
     out["meta"]["index"] = int(index)
     out["scene"] = scene

@@ -299,12 +299,15 @@ def _tape_color(rng):
 MARKERS = ("rope", "strap", "mixed")
 #: the kinds of stand the generator renders (``sample_scene(stand=...)``)
 STANDS = ("forest", "park", "mixed")
+#: what grows round the roped stem's foot (``sample_scene(foot=...)``): the stand's own draws, or
+#: grass tufts there on every scene and a low bush beside it on 40 % (``"clutter"``)
+FEET = ("plain", "clutter")
 #: a strap's width along the stem (m): flagging tape wound in a few turns or webbing
 STRAP_WIDTH_RANGE_M = (0.02, 0.05)
 
 
 def sample_scene(rng: np.random.Generator, width: int, height: int, *, distortion: bool = True,
-                 seed: int = 0, marker: str = "rope", stand: str = "forest") -> Scene:
+                 seed: int = 0, marker: str = "rope", stand: str = "forest", foot: str = "plain") -> Scene:
     """Sample a random forest scene and a handheld camera looking at a (usually roped) tree.
 
     Parameters
@@ -320,6 +323,10 @@ def sample_scene(rng: np.random.Generator, width: int, height: int, *, distortio
         (open-grown trees with dense, low crowns on a lawn, seen from 3-25 m, as in most openly
         licensed tree photos; :func:`_to_park`) or ``"mixed"`` (either, half and half). The park's
         draws come from their own generator, so ``"forest"`` scenes are the same with any value.
+    foot : ``"plain"`` (the default) or ``"clutter"``: 1-3 grass tufts round the main stem's foot
+        and, on 40 % of scenes, a low bush 0.3-1.0 m from it (:func:`_foot_clutter`, the
+        stem-base network's hard cases). The clutter's draws come from their own generator, so
+        the scene's other objects are the same (the render's texture draws are not).
 
     Returns
     -------
@@ -329,6 +336,8 @@ def sample_scene(rng: np.random.Generator, width: int, height: int, *, distortio
         raise ValueError(f"marker must be one of {MARKERS}, got {marker!r}")
     if stand not in STANDS:
         raise ValueError(f"stand must be one of {STANDS}, got {stand!r}")
+    if foot not in FEET:
+        raise ValueError(f"foot must be one of {FEET}, got {foot!r}")
     slope = rng.normal(0, 0.04, 2) * (rng.random() < 0.7)
     waves = np.array([[rng.uniform(0, 0.25), rng.normal(0, 0.15), rng.normal(0, 0.15), rng.uniform(0, 6.3)]
                       for _ in range(3)])
@@ -544,7 +553,26 @@ def sample_scene(rng: np.random.Generator, width: int, height: int, *, distortio
     prng = np.random.default_rng([int(seed), 7001])
     if stand == "park" or (stand == "mixed" and prng.random() < 0.5):
         _to_park(scene, prng)
+    if foot == "clutter":
+        _foot_clutter(scene, np.random.default_rng([int(seed), 7002]))
     return scene
+
+
+def _foot_clutter(scene: Scene, rng: np.random.Generator) -> None:
+    """Grass tufts round the main stem's foot (1-3 patches 0.4-1.5 m across, 0.08-0.35 m high)
+    and, with probability 0.4, a low bush (radius 0.2-0.55 m) 0.3-1.0 m from it (in place)."""
+    base = scene.trees[0].base
+    for _ in range(int(rng.integers(1, 4))):
+        c = base[:2] + rng.normal(0, 0.3, 2)
+        scene.grass.append((c, float(rng.uniform(0.4, 1.5)), float(rng.uniform(150, 450)),
+                            float(rng.uniform(0.08, 0.35))))
+    if rng.random() < 0.4:
+        a = rng.uniform(0, 2 * np.pi)
+        c = base[:2] + rng.uniform(0.3, 1.0) * np.array([np.cos(a), np.sin(a)])
+        r = float(rng.uniform(0.2, 0.55))
+        zc = float(ground_height(scene.ground, *c)) + r * 0.5
+        rgb = (rng.uniform(0.03, 0.1), rng.uniform(0.1, 0.22), rng.uniform(0.02, 0.05))
+        scene.bushes.append((np.array([c[0], c[1], zc]), r, rgb, False))
 
 
 def _open_grown(t: Tree, rng, scale: float = 1.0) -> None:

@@ -107,7 +107,9 @@ def collect(folder: str | Path, limit: int | None = None, progress: bool = True,
                                                  if r.debug.get("lam_before_bound") else None),
                        lam_uncalibrated_log_err=(float(np.log(r.debug["lam_uncalibrated"] / lam_true))
                                                  if r.debug.get("lam_uncalibrated") else None),
-                       up_err_deg={k: _angle_deg(u, true_up(m)) for k, u in r.debug.get("up_sources", {}).items()})
+                       up_err_deg={k: _angle_deg(u, true_up(m)) for k, u in r.debug.get("up_sources", {}).items()},
+                       flags=list(r.flags),
+                       base_p=(float(r.debug["base_network"].p_base) if r.debug.get("base_network") else None))
         rows.append(row)
         if progress:
             print(f"\r{k + 1}/{len(metas)}", end="", file=sys.stderr, flush=True)
@@ -289,7 +291,7 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m monodbh.toolkit.evaluation.error_model", description=__doc__.split("\n")[0])
     ap.add_argument("folder", nargs="+", help="dbh synth folder(s), measured together")
     ap.add_argument("--limit", type=int, help="at most this many samples per folder")
-    ap.add_argument("--json", help="write rows and summary here")
+    ap.add_argument("--json", help="write rows (and with --untapped-too the untapped rows) and summary here")
     ap.add_argument("--tap-base", type=float, metavar="PX", default=None,
                     help="simulate a user tapping the visible stem base with this 1-sigma noise (pixels)")
     ap.add_argument("--untapped-too", action="store_true",
@@ -309,6 +311,7 @@ def main(argv: list[str] | None = None) -> int:
     print(_table(summary))
     rows_sigma = rows
     rows_calib = rows
+    untapped = None
     if a.untapped_too and a.tap_base is not None:
         untapped = [r for f in a.folder for r in collect(f, a.limit, tap_noise_px=None)]
         print("without taps:")
@@ -332,7 +335,7 @@ def main(argv: list[str] | None = None) -> int:
             print("note: measured with the built-in sigmas (no error model for these networks yet): "
                   "run this command once more to fit the distance calibration with the measured ones")
     if a.json:
-        Path(a.json).write_text(json.dumps(dict(summary=summary, rows=rows), indent=1))
+        Path(a.json).write_text(json.dumps(dict(summary=summary, rows=rows, rows_untapped=untapped), indent=1))
     return 0
 
 

@@ -9,6 +9,8 @@ int8 models are scored by their training's evaluation hooks
 - depth: ``absrel`` and ``ms_absrel`` (median-scaled) at the network's input;
 - tree: ``g_acc`` and ``g_within10`` (thickness within 10 %);
 - stem_base: ``recall`` (bases found within 5 % of the strip) and ``precision``;
+- stem_edge: ``score`` (patches whose width is within the training's tolerance) and
+  ``width_median_pct``, on the exact patches of the folder's last 60 scenes;
 - rope_finder: ``recall`` and ``tile_auc`` on a bank cut from the folder
   (:func:`monodbh.models.training.rope_finder_bank.cut_folder`, to a temporary file).
 
@@ -18,7 +20,7 @@ larger; scores: how many times smaller), the ratio issue 26 bounds by 1.25.
 Usage::
 
     python -m monodbh.toolkit.evaluation.network_scores data/bench data/bench_heldout [--n 120] [--json F]
-        [--kinds stem_base,depth] [--models-dir DIR]
+        [--kinds stem_base,stem_edge] [--models-dir DIR]
 
 Imported by nothing (a command); imports the training package's evaluation hooks and onnxruntime.
 """
@@ -37,6 +39,7 @@ FIGURES = (("segmenter", "roped_iou", False), ("segmenter", "roped_detected", Fa
            ("depth", "absrel", True), ("depth", "ms_absrel", True),
            ("tree", "g_acc", False), ("tree", "g_within10", False),
            ("stem_base", "recall", False), ("stem_base", "precision", False),
+           ("stem_edge", "score", False), ("stem_edge", "width_median_pct", True),
            ("rope_finder", "recall", False), ("rope_finder", "tile_auc", False))
 
 
@@ -47,7 +50,7 @@ def _look(folder: Path) -> str:
 
 
 def score_folder(folder: str | Path, n: int = 120, seed: int = 0, models_dir: Optional[Path] = None,
-                 kinds: Sequence[str] = ("segmenter", "depth", "tree", "stem_base", "rope_finder")) -> dict:
+                 kinds: Sequence[str] = ("segmenter", "depth", "tree", "stem_base", "stem_edge", "rope_finder")) -> dict:
     """Each shipped network's evaluation metrics on the samples of ``folder``.
 
     Parameters
@@ -108,7 +111,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--models-dir", type=Path, default=None)
     ap.add_argument("--json", type=Path, default=None)
-    ap.add_argument("--kinds", default="segmenter,depth,tree,stem_base,rope_finder",
+    ap.add_argument("--kinds", default="segmenter,depth,tree,stem_base,stem_edge,rope_finder",
                     help="comma-separated networks to score")
     a = ap.parse_args(argv)
     kinds = [k for k in a.kinds.split(",") if k]

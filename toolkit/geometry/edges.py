@@ -401,11 +401,26 @@ def combine_edges(left: TrunkEdges, right: TrunkEdges, frame: TrunkEdges | None 
     TrunkEdges
     """
     frame = frame or left
-    u = frame.across
-    width = float((right.right_xy - left.left_xy) @ u)
-    return TrunkEdges(left_xy=left.left_xy, right_xy=right.right_xy, width_px=width, along=frame.along, across=u,
+    u = np.asarray(frame.across, np.float64)
+    # each side's point where its own line crosses the frame's cross-section (the sides found on
+    # another cross-section, or with another direction, would otherwise tilt the section)
+    c = 0.5 * (np.asarray(frame.left_xy, np.float64) + np.asarray(frame.right_xy, np.float64))
+    lxy = _on_section(np.asarray(left.left_xy, np.float64), np.asarray(left.along, np.float64), c, u)
+    rxy = _on_section(np.asarray(right.right_xy, np.float64), np.asarray(right.along, np.float64), c, u)
+    width = float((rxy - lxy) @ u)
+    return TrunkEdges(left_xy=lxy, right_xy=rxy, width_px=width, along=frame.along, across=u,
                       edge_rms_px=max(left.edge_rms_px, right.edge_rms_px), n_lines=min(left.n_lines, right.n_lines),
                       points=dict(left=left.points.get("left"), right=right.points.get("right")))
+
+
+def _on_section(p: np.ndarray, d: np.ndarray, c: np.ndarray, u: np.ndarray) -> np.ndarray:
+    """Where the line through ``p`` (2,) along ``d`` (2,) crosses the line through ``c`` along
+    ``u``; ``p`` itself where the two are (nearly) parallel."""
+    A = np.column_stack([d, -u])
+    if abs(np.linalg.det(A)) < 1e-3 * (np.linalg.norm(d) * np.linalg.norm(u) + 1e-12):
+        return p
+    t, _ = np.linalg.solve(A, c - p)
+    return p + t * d
 
 
 def refit_edges(edges: TrunkEdges, keep: dict) -> TrunkEdges:

@@ -363,7 +363,26 @@ def edges_off_rope_ends(perc: Perception, gray_shape: tuple[int, int], edges: Tr
         n_out += int((~k).sum())
     if n_out == 0:
         return edges, 0
-    return refit_edges(edges, keep), n_out
+    out = refit_edges(edges, keep)
+    # a knot or a loose end only adds to the silhouette: a side whose refitted line lies further
+    # out at the rope (its remaining points, far from the rope, tilt or shift it) keeps all its
+    # points
+    wider = [side for side, g in _outward_px(edges, out).items() if not keep[side].all() and g > max(1.0, h)]
+    if wider:
+        for side in wider:
+            n_out -= int((~keep[side]).sum())
+            keep[side] = np.ones(len(keep[side]), bool)
+        out = refit_edges(edges, keep) if n_out else edges
+        if n_out == 0 or max(_outward_px(edges, out).values()) > max(1.0, h):
+            return edges, 0
+    return out, n_out
+
+
+def _outward_px(edges: TrunkEdges, new: TrunkEdges) -> dict[str, float]:
+    """How far (pixels, along ``edges.across``) each side of ``new`` lies outside ``edges``'s."""
+    u = np.asarray(edges.across, np.float64)
+    return {"left": float((np.asarray(edges.left_xy) - np.asarray(new.left_xy)) @ u),
+            "right": float((np.asarray(new.right_xy) - np.asarray(edges.right_xy)) @ u)}
 
 
 def stem_edges(perc: Perception, gray: np.ndarray, config: StemEdgesConfig | None = None,
