@@ -86,3 +86,17 @@ def test_error_model_summary_statistics():
     errs = np.abs(20.0 * np.exp([0.05, -0.1, 0.2, 0.0]) - 20.0)
     assert s["dbh_mae_cm"] == pytest.approx(errs.mean())
     assert s["coverage_1sigma"] == pytest.approx(np.mean(errs <= 2.0))
+
+
+def test_collect_in_two_processes_gives_the_rows_in_sample_order(tmp_path):
+    pytest.importorskip("trimesh")
+    from monodbh.models.synthetic.dataset import synthesize
+    from monodbh.toolkit.evaluation.error_model import collect
+    synthesize(tmp_path, 3, seed=9000, size=(640, 480), workers=1)
+    one = collect(tmp_path, progress=False)
+    two = collect(tmp_path, progress=False, jobs=2)
+    assert [r["photo"] for r in two] == [r["photo"] for r in one] and len(one) >= 2
+    for a, b in zip(one, two):
+        assert (a.get("dbh_cm") is None) == (b.get("dbh_cm") is None)
+        if a.get("dbh_cm") is not None:
+            assert b["dbh_cm"] == pytest.approx(a["dbh_cm"], rel=0.02)

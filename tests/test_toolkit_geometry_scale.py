@@ -102,3 +102,17 @@ def test_the_depth_maps_own_distance():
     assert candidate_depth(SimpleNamespace(depth_is_metric=False), 4.0, _tables()) == ("network", (4.0, 0.37))
     assert candidate_depth(SimpleNamespace(depth_is_metric=True), 4.0, _tables(False),
                            ScaleConfig(depth_gt_sigma=0.01)) == ("depth_gt", (4.0, 0.01))
+
+
+def test_typical_errors_within_the_tie_go_to_the_lighter_tail():
+    cands = {"network": (10.0, 0.30), "ground_plane": (12.0, 0.33)}
+    # ground plane's typical error 1 % under the network's: a tie, the network's lighter tail leads
+    ch = combine_candidates(cands, rank={"network": 0.280, "ground_plane_network": 0.2785}, correlated=True, flags=[])
+    assert ch.leader == "network"
+    # 10 % under: the ground plane leads
+    ch = combine_candidates(cands, rank={"network": 0.280, "ground_plane_network": 0.25}, correlated=True, flags=[])
+    assert ch.leader == "ground_plane"
+    # no tie margin: the least typical error leads however close
+    ch = combine_candidates(cands, rank={"network": 0.280, "ground_plane_network": 0.2785}, correlated=True,
+                            flags=[], config=ScaleConfig(rank_tie=0.0))
+    assert ch.leader == "ground_plane"

@@ -3,7 +3,7 @@
 Prints the table from which ``monodbh.toolkit.geometry.SigmaConfig.model_network`` is set
 (run it on a folder rendered from seeds used neither for training nor for the benchmark)::
 
-    python -m monodbh.toolkit.evaluation.error_model data/calset data/calset2 --json runs/error_model.json \
+    python -m monodbh.toolkit.evaluation.error_model data/calset data/calset2 -j 2 --json runs/error_model.json \
         [--tap-base 3 [--untapped-too]] [--rope-known] [--write]
 
 ``--write`` stores the measured sigmas (and each source's typical error, which picks the
@@ -52,23 +52,39 @@ def _angle_deg(a, b) -> float:
 
 
 def collect(folder: str | Path, limit: int | None = None, progress: bool = True, *,
-            tap_noise_px: float | None = None, rope_known: bool = False) -> list[dict]:
+            tap_noise_px: float | None = None, rope_known: bool = False, jobs: int = 1) -> list[dict]:
     """Measure every roped sample of ``folder``; one row per sample (errors included).
 
     ``tap_noise_px``: also simulate a user tapping the stem base (``dbh measure --base``) where
     it is visible, at the true pixel plus Gaussian noise of this 1-sigma (seeded per sample), so
     the ``stem_base_user`` source is measured too. ``rope_known``: also give the pipeline each
     sample's true rope diameter (``dbh measure --rope-mm``), so the ``rope_diameter`` source is
-    measured too.
+    measured too. ``jobs``: processes (each with a one-thread session), the rows in the
+    samples' order.
     """
+    metas = sorted(Path(folder).glob("[0-9]*.json"))[:limit]
+    if jobs <= 1:
+        return _measure_rows(metas, progress, tap_noise_px, rope_known)
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
+    chunks = [metas[i::jobs] for i in range(jobs)]
+    with ProcessPoolExecutor(jobs, mp_context=multiprocessing.get_context("spawn")) as ex:
+        parts = list(ex.map(_measure_rows, chunks, [False] * jobs, [tap_noise_px] * jobs,
+                            [rope_known] * jobs, [1] * jobs))
+    order = {p.stem: i for i, p in enumerate(metas)}
+    return sorted((r for part in parts for r in part), key=lambda r: order[r["photo"]])
+
+
+def _measure_rows(metas: list[Path], progress: bool, tap_noise_px: float | None, rope_known: bool,
+                  threads: int = 2) -> list[dict]:
+    """:func:`collect`'s rows of the samples ``metas`` (their JSON paths), in one process."""
     from monodbh.toolkit.pipeline import Session, measure_photo
 
     from .synth_samples import camera_from_meta, true_rope_diameter_m
     from .taps import simulated_tap
 
-    sess = Session()
+    sess = Session(threads=threads)
     rows = []
-    metas = sorted(Path(folder).glob("[0-9]*.json"))[:limit]
     for k, jp in enumerate(metas):
         m = json.loads(jp.read_text())
         if not m.get("roped_tree") or not m.get("rope"):
@@ -291,6 +307,7 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m monodbh.toolkit.evaluation.error_model", description=__doc__.split("\n")[0])
     ap.add_argument("folder", nargs="+", help="dbh synth folder(s), measured together")
     ap.add_argument("--limit", type=int, help="at most this many samples per folder")
+    ap.add_argument("-j", "--jobs", type=int, default=1, help="processes (each with a one-thread session)")
     ap.add_argument("--json", help="write rows (and with --untapped-too the untapped rows) and summary here")
     ap.add_argument("--tap-base", type=float, metavar="PX", default=None,
                     help="simulate a user tapping the visible stem base with this 1-sigma noise (pixels)")
@@ -306,14 +323,15 @@ def main(argv: list[str] | None = None) -> int:
     from monodbh.models.runtime import MANIFEST_PATH, fresh_error_model, load_manifest
     from monodbh.toolkit.config import MeasureConfig
     stale = not fresh_error_model(load_manifest(MANIFEST_PATH), MeasureConfig().depth_mirror_average)   # none yet for the shipped networks
-    rows = [r for f in a.folder for r in collect(f, a.limit, tap_noise_px=a.tap_base, rope_known=a.rope_known)]
+    rows = [r for f in a.folder
+            for r in collect(f, a.limit, tap_noise_px=a.tap_base, rope_known=a.rope_known, jobs=a.jobs)]
     summary = summarize(rows)
     print(_table(summary))
     rows_sigma = rows
     rows_calib = rows
     untapped = None
     if a.untapped_too and a.tap_base is not None:
-        untapped = [r for f in a.folder for r in collect(f, a.limit, tap_noise_px=None)]
+        untapped = [r for f in a.folder for r in collect(f, a.limit, tap_noise_px=None, jobs=a.jobs)]
         print("without taps:")
         print(_table(summarize(untapped)))
         rows_sigma = rows + untapped

@@ -186,6 +186,11 @@ class ScaleConfig:
     #: sigmas of 1 (then averaged in), else it is flagged ``scale_disagree_<source>``
     #: (scale-combination.md)
     agree_sigmas: float = 2.5
+    #: sources whose typical errors (the error model's ``rank``) are within this fraction of the
+    #: least one count as tied (about the sampling error of a median over ~300 calibration
+    #: photos); the tie goes to the candidate with the least sigma, the lighter tail
+    #: (scale-combination.md)
+    rank_tie: float = 0.05
     #: typical height of a handheld phone above the ground (m): the scale prior ``camera_height``
     #: (scale-combination.md)
     camera_height_prior_m: float = 1.5

@@ -226,14 +226,20 @@ def combine_candidates(cands: dict[str, tuple[float, float]], *, rank: dict, cor
     """Inverse-variance combination of the candidates that agree with the leading one.
 
     The leading source has the least typical error in ``rank`` (by error-model key; the
-    shipped networks' measured ``rank_network``), else the least sigma. Each other candidate
+    shipped networks' measured ``rank_network``), else the least sigma; sources whose typical
+    errors are within :attr:`~.config.ScaleConfig.rank_tie` of the least are tied, and of those
+    the candidate with the least sigma leads. Each other candidate
     (never ``network`` unless it leads) within :attr:`~.config.ScaleConfig.agree_sigmas` combined
     sigmas is averaged in; the others are flagged ``scale_disagree_<source>``. With
     ``correlated`` sources (network perception: one depth map and one set of masks) agreeing does
     not shrink the sigma below the best single source's.
     """
     cfg = config or ScaleConfig()
-    best = min(cands, key=lambda k: rank.get(_SN_KEY.get(k, k), cands[k][1]))
+    typical = {k: rank.get(_SN_KEY.get(k, k), cands[k][1]) for k in cands}
+    least = min(typical.values())
+    # typical errors this close are a tie (their own sampling error): the lighter tail leads
+    tied = [k for k in cands if typical[k] <= least * (1 + cfg.rank_tie)]
+    best = min(tied, key=lambda k: (cands[k][1], typical[k]))
     lam, sig_rel = cands[best]
     used = [best]
     for k, (l2, s2) in cands.items():
