@@ -67,10 +67,10 @@ def collect(folder: str | Path, limit: int | None = None, progress: bool = True,
         return _measure_rows(metas, progress, tap_noise_px, rope_known)
     import multiprocessing
     from concurrent.futures import ProcessPoolExecutor
-    chunks = [metas[i::jobs] for i in range(jobs)]
+    from functools import partial
+    one = partial(_measure_rows, progress=False, tap_noise_px=tap_noise_px, rope_known=rope_known, threads=1)
     with ProcessPoolExecutor(jobs, mp_context=multiprocessing.get_context("spawn")) as ex:
-        parts = list(ex.map(_measure_rows, chunks, [False] * jobs, [tap_noise_px] * jobs,
-                            [rope_known] * jobs, [1] * jobs))
+        parts = list(ex.map(one, [metas[i::jobs] for i in range(jobs)]))
     order = {p.stem: i for i, p in enumerate(metas)}
     return sorted((r for part in parts for r in part), key=lambda r: order[r["photo"]])
 

@@ -367,13 +367,16 @@ def edges_off_rope_ends(perc: Perception, gray_shape: tuple[int, int], edges: Tr
     # a knot or a loose end only adds to the silhouette: a side whose refitted line lies further
     # out at the rope (its remaining points, far from the rope, tilt or shift it) keeps all its
     # points
-    wider = [side for side, g in _outward_px(edges, out).items() if not keep[side].all() and g > max(1.0, h)]
+    tol = max(1.0, h)
+    wider = [side for side, g in _outward_px(edges, out).items() if not keep[side].all() and g > tol]
     if wider:
         for side in wider:
             n_out -= int((~keep[side]).sum())
             keep[side] = np.ones(len(keep[side]), bool)
-        out = refit_edges(edges, keep) if n_out else edges
-        if n_out == 0 or max(_outward_px(edges, out).values()) > max(1.0, h):
+        if n_out == 0:
+            return edges, 0
+        out = refit_edges(edges, keep)
+        if max(_outward_px(edges, out).values()) > tol:
             return edges, 0
     return out, n_out
 
