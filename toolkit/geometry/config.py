@@ -123,6 +123,15 @@ class StemBaseConfig:
     #: its foot: the lowest segmented point only bounds the distance (base status "occluded",
     #: flag ``stem_base_above_visible_stem``) (stem-base.md)
     mask_overrun_max: float = 0.25
+    #: the network's strip cut again as the stem's edges could also have been found: (width
+    #: factor, shift across in stem widths, rotation in degrees) each; empty: no check (stem-base.md)
+    ambiguity_strips: tuple[tuple[float, float, float], ...] = (
+        (0.85, 0.0, 0.0), (1.2, 0.0, 0.0), (1.0, -0.15, 0.0), (1.0, 0.15, 0.0), (1.0, 0.0, -2.0), (1.0, 0.0, 2.0))
+    #: where one of those strips puts the base lower by more than this fraction of the
+    #: rope-to-base span, both bases are kept: the scale is their distances' geometric mean as a
+    #: weak base, its sigma widened by half their log ratio (base status "network_ambiguous",
+    #: flag ``stem_base_ambiguous``) (stem-base.md)
+    ambiguity_max_lower: float = 0.25
 
 
 @dataclass(frozen=True)

@@ -48,7 +48,9 @@ Candidate = tuple[str, tuple[float, float]]
 def candidate_stem_base(camera, axis: StemAxis, base: StemBase, up_sources: dict, tables: SigmaTables,
                         flags: list[str]) -> Candidate | None:
     """The rope-to-base metrology's candidate: named ``pose`` with a calibrated pose, else
-    ``stem_base_user`` (tapped), ``stem_base_weak`` (a weak network base) or ``stem_base``. Flags
+    ``stem_base_user`` (tapped), ``stem_base_weak`` (a weak or an ambiguous network base: for the
+    latter the geometric mean of its two bases' distances, the sigma widened by half their log
+    ratio) or ``stem_base``. Flags
     ``stem_base_user_rejected`` for a tap that is not below the rope, ``stem_base_<status>``
     without a base."""
     if base.xy is None:
@@ -60,9 +62,16 @@ def candidate_stem_base(camera, axis: StemAxis, base: StemBase, up_sources: dict
         src = "pose" if "pose" in up_sources else "stem_base"
         if base.status == "user" and src == "stem_base":
             src = "stem_base_user"
-        elif base.status == "network_weak" and src == "stem_base":
+        elif base.status in ("network_weak", "network_ambiguous") and src == "stem_base":
             src = "stem_base_weak"
-        cand = (src, (lt, tables.by_perception.get(src, tables.network[src])))
+        sigma = tables.by_perception.get(src, tables.network[src])
+        if base.status == "network_ambiguous":
+            # two feet, the network's and a lower one: between them, the sigma spanning both
+            lt2, lb2 = base_metrology(camera, axis, base.track_info["lower_xy"])
+            if lt2 > 0 and lb2 > 0:
+                half = 0.5 * abs(float(np.log(lt / lt2)))
+                lt, sigma = float(np.sqrt(lt * lt2)), float(np.hypot(sigma, half))
+        cand = (src, (lt, sigma))
     if base.status == "user" and not (lt > 0 and lb > 0):
         flags.append("stem_base_user_rejected")      # the tapped point is not below the rope
     return cand

@@ -33,7 +33,9 @@ class StemBase:
     ----------
     xy : (2,) the stem's front contact with the ground (pixels), or None.
     status : "user" (tapped), "network" / "network_weak" (the stem-base network, its probability
-        at least / under :attr:`~.config.StemBaseConfig.p_strong`), "unconfirmed" (the network saw
+        at least / under :attr:`~.config.StemBaseConfig.p_strong`), "network_ambiguous" (the
+        network puts the base lower in a strip cut a little differently: ``track_info["lower_xy"]``),
+        "unconfirmed" (the network saw
         no base, and there is no segmented stem or no edges to confirm a tracked one: the
         tracker does not run), "tracked" (the edge tracker
         ended on what looks like the ground: a bound, not a base, unless
@@ -91,16 +93,46 @@ def _below_visible_stem(perc: Perception, edges: TrunkEdges, xy: np.ndarray,
     return c + t_end * a
 
 
+def _lower_base_nearby(find, rgb: np.ndarray, top: np.ndarray, along: np.ndarray, width_px: float,
+                       xy: np.ndarray, config: StemBaseConfig) -> tuple[float, np.ndarray | None]:
+    """The lowest base the network finds when its strip is cut a little differently
+    (``config.ambiguity_strips``: width factor, shift across in stem widths, rotation in
+    degrees): ``(how much lower, as a fraction of the rope-to-base span; its pixel (2,))``,
+    ``(0, None)`` where none is lower.
+
+    A foot hidden in grass or behind a bush leaves the network to choose between the top of what
+    hides it and a lower end; a strip cut as the stem's edges could also have been found may
+    take the other. ``find`` is the network's ``(rgb, top, along, width) -> estimate``."""
+    a = normalize(np.asarray(along, np.float64))
+    u = np.array([a[1], -a[0]])
+    t0 = float((np.asarray(xy, np.float64) - top) @ a)
+    lower, lower_xy = 0.0, None
+    if not t0 > 0:
+        return lower, lower_xy
+    for k_w, shift_w, rot_deg in config.ambiguity_strips:
+        c, s_ = np.cos(np.radians(rot_deg)), np.sin(np.radians(rot_deg))
+        a2 = np.array([c * a[0] - s_ * a[1], s_ * a[0] + c * a[1]])
+        est = find(rgb, top + shift_w * width_px * u, a2, k_w * width_px)
+        if est:
+            d = (float((np.asarray(est.xy, np.float64) - top) @ a) - t0) / t0
+            if d > lower:
+                lower, lower_xy = d, np.asarray(est.xy, np.float64)
+    return lower, lower_xy
+
+
 def _base_from_network(perc: Perception, edges: TrunkEdges, axis: StemAxis, up_sources: dict,
                        res: MeasureResult, flags: list[str], config: StemBaseConfig,
                        up_config: UpConfig | None) -> StemBase | None:
     """The stem-base network's base (``perc.base_finder`` reads the strip below the rope), or None."""
     t_b = time.perf_counter()
-    est = perc.base_finder(perc.rgb, axis.mid_xy,
-                           stem_image_direction(perc.camera, axis.mid_xy, edges.along, up_sources, up_config),
-                           edges.width_px)
+    top = np.asarray(axis.mid_xy, np.float64)
+    along = stem_image_direction(perc.camera, axis.mid_xy, edges.along, up_sources, up_config)
+    est = perc.base_finder(perc.rgb, top, along, edges.width_px)
+    lower, lower_xy = (_lower_base_nearby(perc.base_finder, perc.rgb, top, along, float(edges.width_px), est.xy,
+                                          config) if est and config.ambiguity_strips else (0.0, None))
     res.timings_ms["base"] = 1000 * (time.perf_counter() - t_b)
     res.debug["base_network"] = est
+    res.debug["base_lower_nearby"] = lower
     if not est:
         return None
     xy = np.asarray(est.xy, np.float64)
@@ -111,6 +143,11 @@ def _base_from_network(perc: Perception, edges: TrunkEdges, axis: StemAxis, up_s
         flags.append("stem_base_above_visible_stem")
         return StemBase(None, "occluded", {"end_xy": end, "network_xy": xy})
     flags.append("stem_base_from_network")
+    if lower > config.ambiguity_max_lower:
+        # a strip cut a little differently finds the foot lower: what was taken may be the top of
+        # something hiding it; both stay (the scale reads between them, its sigma spans them)
+        flags.append("stem_base_ambiguous")
+        return StemBase(xy, "network_ambiguous", {"lower_xy": lower_xy})
     return StemBase(xy, "network_weak" if est.p_base < config.p_strong else "network")
 
 

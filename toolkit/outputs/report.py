@@ -59,6 +59,8 @@ FLAG_TEXT = {
     "stem_base_tracked": "the stem's foot was not recognised (its edges were followed down, which only bounds the distance)",
     "stem_base_above_visible_stem": ("what looked like the stem's foot is in front of it (the stem is seen lower): "
                                      "it only bounds the distance"),
+    "stem_base_ambiguous": ("the stem-base network's foot moves lower when its strip is cut a little differently "
+                            "(grass or a bush may hide the foot): the scale lies between the two, sigma widened"),
     "stem_base_lost": "the stem's edges could not be followed down to the foot",
     "stem_base_off_mask": "the stem's edges ran off the segmented trunk before the foot",
     "stem_base_unconfirmed": "no stem foot found (the stem-base network saw none; unconfirmed stem edges were not followed down)",
