@@ -35,6 +35,7 @@ def test_every_known_flag_and_scale_has_words():
     (_row(scale_source="network", flags=["stem_base_occluded"]), False, ["step back"], ["--base"]),
     (_row(flags=["few_pixels_across_stem"]), False, ["closer"], ["step back"]),
     (_row(flags=["width_disagrees_rope"]), False, ["neighbouring trunk"], []),
+    (_row(flags=["stem_base_from_network", "stem_base_ambiguous"]), False, ["--base X,Y"], ["Retake"]),
     (_row(error="a.jpg: no red rope found", dbh=None), False, [], ["Retake"]),
 ])
 def test_retake_advice(row, marker_known, has, lacks):

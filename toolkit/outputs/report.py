@@ -142,6 +142,9 @@ def retake_advice(row: dict, marker_known: bool = False) -> str:
         advice.append("Retake closer: the stem is too few pixels wide.")
     if "photo_maybe_sideways" in flags:
         advice.append("Check the photo's orientation.")
+    if "stem_base_ambiguous" in flags:
+        advice.append("Check the stem's foot on the overlay: where grass or a bush hides it, tap the true foot "
+                      "(--base X,Y).")
     if flags & {"width_disagrees_rope", "edges_from_rope_band", "edge_at_rope_end"}:
         advice.append("Check the overlay: a neighbouring trunk touches the stem.")
     return " ".join(advice)
