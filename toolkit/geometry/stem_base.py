@@ -128,11 +128,8 @@ def _base_from_network(perc: Perception, edges: TrunkEdges, axis: StemAxis, up_s
     top = np.asarray(axis.mid_xy, np.float64)
     along = stem_image_direction(perc.camera, axis.mid_xy, edges.along, up_sources, up_config)
     est = perc.base_finder(perc.rgb, top, along, edges.width_px)
-    lower, lower_xy = (_lower_base_nearby(perc.base_finder, perc.rgb, top, along, float(edges.width_px), est.xy,
-                                          config) if est and config.ambiguity_strips else (0.0, None))
     res.timings_ms["base"] = 1000 * (time.perf_counter() - t_b)
     res.debug["base_network"] = est
-    res.debug["base_lower_nearby"] = lower
     if not est:
         return None
     xy = np.asarray(est.xy, np.float64)
@@ -143,6 +140,11 @@ def _base_from_network(perc: Perception, edges: TrunkEdges, axis: StemAxis, up_s
         flags.append("stem_base_above_visible_stem")
         return StemBase(None, "occluded", {"end_xy": end, "network_xy": xy})
     flags.append("stem_base_from_network")
+    t_b = time.perf_counter()
+    lower, lower_xy = (_lower_base_nearby(perc.base_finder, perc.rgb, top, along, float(edges.width_px), xy, config)
+                       if config.ambiguity_strips else (0.0, None))
+    res.timings_ms["base"] += 1000 * (time.perf_counter() - t_b)
+    res.debug["base_lower_nearby"] = lower
     if lower > config.ambiguity_max_lower:
         # a strip cut a little differently finds the foot lower: what was taken may be the top of
         # something hiding it; both stay (the scale reads between them, its sigma spans them)
