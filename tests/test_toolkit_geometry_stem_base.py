@@ -188,7 +188,9 @@ def test_a_base_that_moves_lower_in_a_strip_cut_a_little_wider_is_read_between_t
         flags, res = [], MeasureResult(photo="")
         return find_stem_base(p, gray, edges, axis, {}, res, flags, config), flags, res
 
-    moving = lambda rgb_, top, along, w: SimpleNamespace(xy=(240.0, 449.0 if w > 1.1 * w0 else 400.0), p_base=0.95)
+    def moving_with(p):
+        return lambda rgb_, top, along, w: SimpleNamespace(xy=(240.0, 449.0 if w > 1.1 * w0 else 400.0), p_base=p)
+    moving = moving_with(0.92)
     b, flags, res = find(moving)
     assert b.status == "network_ambiguous" and np.allclose(b.xy, [240.0, 400.0])
     assert np.allclose(b.track_info["lower_xy"], [240.0, 449.0])
@@ -204,6 +206,9 @@ def test_a_base_that_moves_lower_in_a_strip_cut_a_little_wider_is_read_between_t
     # the network's base as it is where the check is off, or where the lower base is within the tolerance
     assert find(moving, StemBaseConfig(ambiguity_strips=()))[0].status == "network"
     assert find(moving, StemBaseConfig(ambiguity_max_lower=0.7))[0].status == "network"
+    # a base the network is surer of than ambiguity_p_max is not cut again
+    b, _, res = find(moving_with(0.97))
+    assert b.status == "network" and res.debug["base_lower_nearby"] == 0.0
     steady = lambda *a: SimpleNamespace(xy=(240.0, 449.0), p_base=0.95)
     b, flags, res = find(steady)
     assert b.status == "network" and flags == ["stem_base_from_network"] and res.debug["base_lower_nearby"] == 0.0

@@ -132,6 +132,9 @@ class StemBaseConfig:
     #: weak base, its sigma widened by half their log ratio (base status "network_ambiguous",
     #: flag ``stem_base_ambiguous``) (stem-base.md)
     ambiguity_max_lower: float = 0.25
+    #: the strips are cut again only for a base the network gives less than this probability
+    #: (a time saving: no surer base moved that far) (stem-base.md)
+    ambiguity_p_max: float = 0.95
 
 
 @dataclass(frozen=True)

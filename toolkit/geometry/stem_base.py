@@ -142,7 +142,7 @@ def _base_from_network(perc: Perception, edges: TrunkEdges, axis: StemAxis, up_s
     flags.append("stem_base_from_network")
     t_b = time.perf_counter()
     lower, lower_xy = (_lower_base_nearby(perc.base_finder, perc.rgb, top, along, float(edges.width_px), xy, config)
-                       if config.ambiguity_strips else (0.0, None))
+                       if config.ambiguity_strips and est.p_base < config.ambiguity_p_max else (0.0, None))
     res.timings_ms["base"] += 1000 * (time.perf_counter() - t_b)
     res.debug["base_lower_nearby"] = lower
     if lower > config.ambiguity_max_lower:
