@@ -122,6 +122,10 @@ def test_the_rope_check_thresholds_come_from_the_config():
     edges, flags, width_vs_rope = stem_edges(perc, gray, StemEdgesConfig(width_rope_ratio_max=1.0))
     assert flags == ["edge_at_rope_end", "width_disagrees_rope"]
     assert width_vs_rope == pytest.approx(abs(np.log(edges.width_px / 58.0)))
+    # edges much narrower than the band across the stem are flagged the same way
+    edges, flags, width_vs_rope = stem_edges(perc, gray, StemEdgesConfig(width_rope_ratio_min=1.1))
+    assert flags == ["edge_at_rope_end", "width_disagrees_rope"]
+    assert width_vs_rope == pytest.approx(abs(np.log(edges.width_px / 58.0)))
 
 
 

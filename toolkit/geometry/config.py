@@ -79,6 +79,10 @@ class StemEdgesConfig:
     #: edges wider than this factor times the rope band's length are flagged
     #: ``width_disagrees_rope`` and the gap enters the DBH sigma (stem-edges-rope-check.md)
     width_rope_ratio_max: float = 1.3
+    #: edges narrower than this factor times the rope band's length (the band spans the stem;
+    #: its knot and round ends overshoot it by little) are flagged the same way
+    #: (stem-edges-rope-check.md)
+    width_rope_ratio_min: float = 0.5
     #: edges found at the rope band's ends replace missing mask edges when their width over the
     #: rope length lies strictly in this range (stem-edges-rope-check.md)
     band_width_ratio: tuple[float, float] = (0.8, 1.25)

@@ -433,9 +433,10 @@ def stem_edges(perc: Perception, gray: np.ndarray, config: StemEdgesConfig | Non
             flags.append("edge_points_on_rope_end")
     if edges and perc.rope_length_px and perc.rope_band_mask is not None:
         # the rope spans the stem: a stem much wider than the rope band means edges the rope
-        # check could not settle; the gap widens the sigma
+        # check could not settle, one much narrower edges inside the stem (bark, a shadow); the
+        # gap widens the sigma
         ratio = edges.width_px / perc.rope_length_px
-        if ratio > cfg.width_rope_ratio_max:
+        if ratio > cfg.width_rope_ratio_max or ratio < cfg.width_rope_ratio_min:
             flags.append("width_disagrees_rope")
             width_vs_rope = float(abs(np.log(ratio)))
     if not edges and perc.rope_band_mask is not None:

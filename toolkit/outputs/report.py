@@ -80,7 +80,7 @@ FLAG_TEXT = {
     "edges_out_to_rope_end": "a stem edge was moved out to where the marker ends (outline inside the stem)",
     "edge_points_on_rope_end": "edge points on the marker's knot or loose ends were left out",
     "edges_from_network": "the stem-edge network moved a stem edge off a neighbour, shadow or background border",
-    "width_disagrees_rope": "the stem edges are much wider than the marker: sigma widened",
+    "width_disagrees_rope": "the stem edges are much wider or narrower than the marker across the stem: sigma widened",
     "rope_from_stem_profile": "the marker was found as a faint red row across the trunk",
     "rope_verified_by_network": "the faint marker was confirmed by the rope-verifier network",
     "rope_found_by_network": "the marker was found by the rope-finder network",
@@ -146,7 +146,7 @@ def retake_advice(row: dict, marker_known: bool = False) -> str:
         advice.append("Check the stem's foot on the overlay: where grass or a bush hides it, tap the true foot "
                       "(--base X,Y).")
     if flags & {"width_disagrees_rope", "edges_from_rope_band", "edge_at_rope_end"}:
-        advice.append("Check the overlay: a neighbouring trunk touches the stem.")
+        advice.append("Check the overlay: a neighbouring trunk touches the stem, or its edges were taken on the bark.")
     return " ".join(advice)
 
 
