@@ -5,7 +5,7 @@ evaluation; imports the stages of :mod:`monodbh.toolkit.geometry`. Pure geometry
 arrays: the same code runs on network outputs and on ground-truth perception (``dbh eval
 --gt-perception``, the single-view floor), so the two are directly comparable.
 
-The stages (see README "How the scale is set"):
+The stages (see docs/METHOD.md, "How the scale is set"):
 
 1. the stem's silhouette edges at the rope, checked against the rope band (:mod:`.stem_edges`);
 2. the up direction (:mod:`.up`: calibrated pose, vertical vanishing point, the depth map's
