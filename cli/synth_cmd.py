@@ -34,9 +34,9 @@ def synth(
                                "(a flat red strap 20-50 mm wide) or mixed (either)."),
     stand: str = typer.Option("forest", "--stand", help="forest (a closed stand, the default), park (open-grown "
                               "trees with dense crowns on a lawn, seen from 3-25 m) or mixed (either)."),
-    foot: str = typer.Option("plain", "--foot", help="plain (the default) or clutter: grass tufts round the "
-                             "roped stem's foot on every scene and a low bush beside it on 40 % (stem-base "
-                             "training)."),
+    foot: str = typer.Option("plain", "--foot", help="plain (the default); clutter: grass tufts round the "
+                             "roped stem's foot on every scene and a low bush beside it on 40 %; hidden: tufts "
+                             "0.05-0.6 m high and a bush in front of the foot on 35 % (stem-base training)."),
     look: str = typer.Option("default", "--look", help="default; randomized: the same scenes with their colours, "
                              "texture contrast, light and camera response randomised (for training); or heldout: "
                              "the same scenes with textures cut from the real photos, another light and another "

@@ -294,3 +294,28 @@ def test_foot_clutter_adds_grass_and_bushes_at_the_roped_foot_only():
     assert 0 < n_bush < 10
     with pytest.raises(ValueError, match="foot must be one of"):
         sample_scene(np.random.default_rng(0), 64, 48, foot="moss")
+
+
+def test_foot_hidden_adds_taller_grass_and_a_bush_in_front_of_the_foot():
+    """``foot="hidden"``: 1-3 grass tufts round the main stem's foot up to 0.6 m high and, on
+    some scenes, a bush between the camera and the foot; the scene's other objects are the plain
+    scene's."""
+    from monodbh.models.synthetic.scene import sample_scene
+    n_bush, tall = 0, 0
+    for k in range(12):
+        plain = sample_scene(np.random.default_rng(k), 64, 48, seed=k)
+        hid = sample_scene(np.random.default_rng(k), 64, 48, seed=k, foot="hidden")
+        base = hid.trees[0].base[:2]
+        extra = hid.grass[len(plain.grass):]
+        assert 1 <= len(extra) <= 3
+        assert all(np.hypot(*(c - base)) < 1.5 and 0.05 <= h <= 0.6 for c, _, _, h in extra)
+        tall += sum(h > 0.3 for *_, h in extra)
+        to_cam = hid.camera.t_wc[:2] - base
+        for b in hid.bushes[len(plain.bushes):]:
+            rel = b[0][:2] - base
+            along = rel @ to_cam / np.linalg.norm(to_cam)
+            assert 0.2 <= along <= 1.0 and np.sqrt(max(rel @ rel - along ** 2, 0.0)) <= 0.3 + 1e-9
+            n_bush += 1
+        assert [t.base.tolist() for t in hid.trees] == [t.base.tolist() for t in plain.trees]
+        assert np.array_equal(hid.camera.t_wc, plain.camera.t_wc)
+    assert 0 < n_bush < 12 and tall > 0

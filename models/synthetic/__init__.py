@@ -200,8 +200,8 @@ def generate_sample(seed: int, index: int = 0, size: tuple[int, int] = (512, 512
     look : ``"default"``, ``"randomized"`` (domain randomisation) or ``"heldout"`` (for evaluation
         only; no training path accepts it): the same scene with another appearance (:mod:`.looks`).
     stand : ``"forest"`` (the default), ``"park"`` or ``"mixed"``; see :func:`~.scene.sample_scene`.
-    foot : ``"plain"`` (the default) or ``"clutter"`` (grass and a bush at the roped stem's foot);
-        see :func:`~.scene.sample_scene`.
+    foot : ``"plain"`` (the default), ``"clutter"`` (grass and a bush at the roped stem's foot)
+        or ``"hidden"`` (taller grass, a bush in front of the foot); see :func:`~.scene.sample_scene`.
 
     Returns
     -------

@@ -299,9 +299,11 @@ def _tape_color(rng):
 MARKERS = ("rope", "strap", "mixed")
 #: the kinds of stand the generator renders (``sample_scene(stand=...)``)
 STANDS = ("forest", "park", "mixed")
-#: what grows round the roped stem's foot (``sample_scene(foot=...)``): the stand's own draws, or
-#: grass tufts there on every scene and a low bush beside it on 40 % (``"clutter"``)
-FEET = ("plain", "clutter")
+#: what grows round the roped stem's foot (``sample_scene(foot=...)``): the stand's own draws,
+#: grass tufts there on every scene and a low bush beside it on 40 % (``"clutter"``), or grass as
+#: likely over as under the stem-base label's 0.3 m and a bush in front of the foot on 35 %
+#: (``"hidden"``)
+FEET = ("plain", "clutter", "hidden")
 #: a strap's width along the stem (m): flagging tape wound in a few turns or webbing
 STRAP_WIDTH_RANGE_M = (0.02, 0.05)
 
@@ -323,10 +325,13 @@ def sample_scene(rng: np.random.Generator, width: int, height: int, *, distortio
         (open-grown trees with dense, low crowns on a lawn, seen from 3-25 m, as in most openly
         licensed tree photos; :func:`_to_park`) or ``"mixed"`` (either, half and half). The park's
         draws come from their own generator, so ``"forest"`` scenes are the same with any value.
-    foot : ``"plain"`` (the default) or ``"clutter"``: 1-3 grass tufts round the main stem's foot
+    foot : ``"plain"`` (the default), ``"clutter"``: 1-3 grass tufts round the main stem's foot
         and, on 40 % of scenes, a low bush 0.3-1.0 m from it (:func:`_foot_clutter`, the
-        stem-base network's hard cases). The clutter's draws come from their own generator, so
-        the scene's other objects are the same (the render's texture draws are not).
+        stem-base network's hard cases), or ``"hidden"``: tufts 0.05-0.6 m high (a foot in grass
+        over 0.3 m is labelled hidden) and, on 35 %, a bush between the camera and the foot
+        (:func:`_foot_hidden`: the tops of what hides a foot, which the network must not take
+        for it). The clutter's draws come from their own generator, so the scene's other objects
+        are the same (the render's texture draws are not).
 
     Returns
     -------
@@ -555,7 +560,29 @@ def sample_scene(rng: np.random.Generator, width: int, height: int, *, distortio
         _to_park(scene, prng)
     if foot == "clutter":
         _foot_clutter(scene, np.random.default_rng([int(seed), 7002]))
+    elif foot == "hidden":
+        _foot_hidden(scene, np.random.default_rng([int(seed), 7003]))
     return scene
+
+
+def _foot_hidden(scene: Scene, rng: np.random.Generator) -> None:
+    """Grass tufts round the main stem's foot (1-3 patches 0.4-1.5 m across, 0.05-0.6 m high)
+    and, with probability 0.35, a bush (radius 0.25-0.6 m) 0.2-1.0 m in front of the foot on the
+    camera's side, within 0.3 m of the line of sight (in place)."""
+    base = scene.trees[0].base
+    for _ in range(int(rng.integers(1, 4))):
+        c = base[:2] + rng.normal(0, 0.3, 2)
+        scene.grass.append((c, float(rng.uniform(0.4, 1.5)), float(rng.uniform(150, 450)),
+                            float(rng.uniform(0.05, 0.6))))
+    if rng.random() < 0.35:
+        to_cam = np.asarray(scene.camera.t_wc[:2], np.float64) - base[:2]
+        to_cam /= np.linalg.norm(to_cam) + 1e-12
+        side = np.array([-to_cam[1], to_cam[0]])
+        c = base[:2] + rng.uniform(0.2, 1.0) * to_cam + rng.uniform(-0.3, 0.3) * side
+        r = float(rng.uniform(0.25, 0.6))
+        zc = float(ground_height(scene.ground, *c)) + r * 0.5
+        rgb = (rng.uniform(0.03, 0.1), rng.uniform(0.1, 0.22), rng.uniform(0.02, 0.05))
+        scene.bushes.append((np.array([c[0], c[1], zc]), r, rgb, False))
 
 
 def _foot_clutter(scene: Scene, rng: np.random.Generator) -> None:
