@@ -569,37 +569,42 @@ def _foot_hidden(scene: Scene, rng: np.random.Generator) -> None:
     """Grass tufts round the main stem's foot (1-3 patches 0.4-1.5 m across, 0.05-0.6 m high)
     and, with probability 0.35, a bush (radius 0.25-0.6 m) 0.2-1.0 m in front of the foot on the
     camera's side, within 0.3 m of the line of sight (in place)."""
-    base = scene.trees[0].base
-    for _ in range(int(rng.integers(1, 4))):
-        c = base[:2] + rng.normal(0, 0.3, 2)
-        scene.grass.append((c, float(rng.uniform(0.4, 1.5)), float(rng.uniform(150, 450)),
-                            float(rng.uniform(0.05, 0.6))))
+    base = _foot_tufts(scene, rng, (0.05, 0.6))
     if rng.random() < 0.35:
         to_cam = np.asarray(scene.camera.t_wc[:2], np.float64) - base[:2]
         to_cam /= np.linalg.norm(to_cam) + 1e-12
         side = np.array([-to_cam[1], to_cam[0]])
         c = base[:2] + rng.uniform(0.2, 1.0) * to_cam + rng.uniform(-0.3, 0.3) * side
-        r = float(rng.uniform(0.25, 0.6))
-        zc = float(ground_height(scene.ground, *c)) + r * 0.5
-        rgb = (rng.uniform(0.03, 0.1), rng.uniform(0.1, 0.22), rng.uniform(0.02, 0.05))
-        scene.bushes.append((np.array([c[0], c[1], zc]), r, rgb, False))
+        _foot_bush(scene, rng, c, (0.25, 0.6))
 
 
 def _foot_clutter(scene: Scene, rng: np.random.Generator) -> None:
     """Grass tufts round the main stem's foot (1-3 patches 0.4-1.5 m across, 0.08-0.35 m high)
     and, with probability 0.4, a low bush (radius 0.2-0.55 m) 0.3-1.0 m from it (in place)."""
+    base = _foot_tufts(scene, rng, (0.08, 0.35))
+    if rng.random() < 0.4:
+        a = rng.uniform(0, 2 * np.pi)
+        c = base[:2] + rng.uniform(0.3, 1.0) * np.array([np.cos(a), np.sin(a)])
+        _foot_bush(scene, rng, c, (0.2, 0.55))
+
+
+def _foot_tufts(scene: Scene, rng: np.random.Generator, height_m: tuple[float, float]) -> np.ndarray:
+    """1-3 grass patches 0.4-1.5 m across, ``height_m`` (low, high) tall, round the main stem's
+    foot (in place); returns that foot (3,)."""
     base = scene.trees[0].base
     for _ in range(int(rng.integers(1, 4))):
         c = base[:2] + rng.normal(0, 0.3, 2)
         scene.grass.append((c, float(rng.uniform(0.4, 1.5)), float(rng.uniform(150, 450)),
-                            float(rng.uniform(0.08, 0.35))))
-    if rng.random() < 0.4:
-        a = rng.uniform(0, 2 * np.pi)
-        c = base[:2] + rng.uniform(0.3, 1.0) * np.array([np.cos(a), np.sin(a)])
-        r = float(rng.uniform(0.2, 0.55))
-        zc = float(ground_height(scene.ground, *c)) + r * 0.5
-        rgb = (rng.uniform(0.03, 0.1), rng.uniform(0.1, 0.22), rng.uniform(0.02, 0.05))
-        scene.bushes.append((np.array([c[0], c[1], zc]), r, rgb, False))
+                            float(rng.uniform(*height_m))))
+    return base
+
+
+def _foot_bush(scene: Scene, rng: np.random.Generator, c: np.ndarray, radius_m: tuple[float, float]) -> None:
+    """A green bush of radius in ``radius_m`` standing on the ground at ``c`` (2,) (in place)."""
+    r = float(rng.uniform(*radius_m))
+    zc = float(ground_height(scene.ground, *c)) + r * 0.5
+    rgb = (rng.uniform(0.03, 0.1), rng.uniform(0.1, 0.22), rng.uniform(0.02, 0.05))
+    scene.bushes.append((np.array([c[0], c[1], zc]), r, rgb, False))
 
 
 def _open_grown(t: Tree, rng, scale: float = 1.0) -> None:
