@@ -212,9 +212,10 @@ def measure(
                                            show_default=False),
     workers: int = typer.Option(1, "--workers", "-j", min=1, help="Processes measuring in parallel "
                                 "(each loads the models once)."),
-    pick: Optional[str] = typer.Option(None, "--pick", metavar="X,Y", help="Pixel on the rope: chooses "
-                                       "among several roped trees, or finds a rope too faint to be found "
-                                       "unasked (a tap where there is no rope is an error).", show_default=False),
+    pick: Optional[str] = typer.Option(None, "--pick", metavar="X,Y", help="Pixel on the rope (its knot "
+                                       "or a hanging end will do): chooses among several roped trees, or "
+                                       "finds a rope too faint to be found unasked (a tap where there is "
+                                       "no rope is an error).", show_default=False),
     base: Optional[str] = typer.Option(None, "--base", metavar="X,Y", help="Pixel where the roped stem "
                                        "meets the ground (front, middle), one photo only: sets the "
                                        "scale from the rope-to-base geometry (about 10x more accurate "

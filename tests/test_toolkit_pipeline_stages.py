@@ -6,7 +6,7 @@ from monodbh.calib import Camera
 from monodbh.calib.errors import MonodbhError
 from monodbh.toolkit.config import MeasureConfig
 from monodbh.toolkit.frames import work_frame
-from monodbh.toolkit.pipeline import _find_rope, _Request
+from monodbh.toolkit.pipeline import _find_rope, _Request, _TapInstances
 
 
 class _Seg:
@@ -17,11 +17,25 @@ class _Seg:
         return self
 
 
+class _NoTreeSeg:
+    """A segmenter stub that finds no tree (the second pass at a tap)."""
+
+    def predict(self, rgb, size):
+        from types import SimpleNamespace
+        return SimpleNamespace(instance=np.zeros(rgb.shape[:2], np.int32))
+
+
 class _Sess:
-    """What the rope stage needs of a Session: its config and the two rope networks (none here)."""
+    """What the rope stage needs of a Session: its config, the segmenter (for a second pass at a
+    tap) and the two rope networks (none here)."""
     config = MeasureConfig()
+    segmenter = _NoTreeSeg()
     rope_verifier = None
     rope_finder = None
+
+
+def _find(frame, instance, req, cell=8.0):
+    return _find_rope("p.jpg", frame, _TapInstances(_Sess(), frame, _Seg(instance), req, cell), cell, req, _Sess(), {})
 
 
 def _roped_photo_near_corner(W=2000, H=1500):
@@ -42,7 +56,7 @@ def test_a_tap_goes_through_the_lens_distortion():
     tap = (210.0, 200.0)
     assert np.hypot(*(frame.to_work(tap) - np.asarray(tap) * frame.scale)) > 20
     instance = np.zeros(frame.shape, np.uint16)
-    choice = _find_rope("p.jpg", frame, _Seg(instance), 8.0, _Request(pick_xy=tap), _Sess(), {})
+    choice = _find(frame, instance, _Request(pick_xy=tap))
     assert choice and np.hypot(*(frame.to_photo(choice.rope.center_xy) - tap)) < 25
 
 
@@ -52,7 +66,7 @@ def test_a_tap_far_from_any_rope_is_refused_with_the_photos_pixel():
     frame = work_frame(_roped_photo_near_corner(W, H), cam, 1600)
     instance = np.zeros(frame.shape, np.uint16)
     with pytest.raises(MonodbhError, match=r"at the picked point \(1500,1000\)"):
-        _find_rope("p.jpg", frame, _Seg(instance), 8.0, _Request(pick_xy=(1500.0, 1000.0)), _Sess(), {})
+        _find(frame, instance, _Request(pick_xy=(1500.0, 1000.0)))
 
 
 class _CropSeg:
@@ -89,7 +103,52 @@ def test_the_zoomed_edge_mask_is_the_stem_under_the_rope_in_a_crop_around_it():
     assert _zoomed_stem_mask(sess, frame, (150.0, 100.0), 0.3) is None    # no stem under the rope
 
 
+def test_a_tap_where_the_photo_has_no_tree_adds_the_tree_a_close_up_finds_there():
+    from types import SimpleNamespace
+    H, W = 200, 300
+    img = np.tile(np.arange(W, dtype=np.uint8)[None, :, None], (H, 1, 3))   # column index as colour
+    frame = SimpleNamespace(shape=(H, W), image=img, to_work=lambda xy: np.asarray(xy, float))
+    whole = np.zeros((H, W), np.int32)
+    whole[:, 200:220] = 3                                       # another tree, far from the tap
+    seg = _CropSeg(lambda rgb: int(rgb[0, 0, 0]))
+    sess = SimpleNamespace(segmenter=seg, config=MeasureConfig())
+    at_tap = _TapInstances(sess, frame, _Seg(whole), _Request(pick_xy=(50.0, 100.0)), 4.0)
+    inst = at_tap()
+    assert at_tap.added and len(seg.calls) == 1
+    ys, xs = np.nonzero(inst == 4)                              # a new id, after the photo's own
+    assert xs.min() == 40 and xs.max() == 59 and ys.min() == 55 and ys.max() == 144
+    assert (inst == 3).sum() == whole.sum() // 3 and at_tap() is inst        # kept, computed once
+    on_tree = _TapInstances(sess, frame, _Seg(whole), _Request(pick_xy=(210.0, 100.0)), 4.0)
+    assert on_tree() is whole and not on_tree.added and len(seg.calls) == 1  # no second pass
+    no_tap = _TapInstances(sess, frame, _Seg(whole), _Request(), 4.0)
+    assert no_tap() is whole and len(seg.calls) == 1
+
+
 def test_edge_mask_zoom_is_checked():
     assert MeasureConfig(edge_mask_zoom=None).edge_mask_zoom is None
     with pytest.raises(ValueError, match="edge_mask_zoom"):
         MeasureConfig(edge_mask_zoom=0.0)
+
+
+def test_a_faint_row_much_thinner_than_the_known_marker_is_refused_or_flagged_at_a_tap():
+    from types import SimpleNamespace
+
+    from monodbh.toolkit.pipeline import _check_row_against_marker
+    from monodbh.toolkit.result import MeasureResult
+    from monodbh.toolkit.rope.select import RopeChoice, RopeSource
+    frame = SimpleNamespace(camera=SimpleNamespace(K=np.array([[1300.0, 0, 800], [0, 1300.0, 600], [0, 0, 1]])),
+                            to_photo=lambda xy: np.asarray(xy, float) / 0.4)
+    row = RopeChoice(SimpleNamespace(center_xy=(100.0, 50.0)), source=RopeSource.STEM_VERIFIED)
+    measured = lambda: MeasureResult(photo="p.jpg", dbh_cm=13.3, distance_m=2.0)
+    # an 8 mm marker at 2 m is 5.2 px thick: not a sub-pixel row
+    with pytest.raises(MonodbhError, match=r"p.jpg: no red rope found \(the faint red row at \(250,125\).*8 mm.*5 px"):
+        _check_row_against_marker(measured(), "p.jpg", frame, row, _Request(rope_diameter_m=0.008), 4.0)
+    res = measured()
+    _check_row_against_marker(res, "p.jpg", frame, row, _Request(pick_xy=(250.0, 125.0), rope_diameter_m=0.008), 4.0)
+    assert res.dbh_cm == 13.3 and res.flags == ["row_thinner_than_marker"]
+    for req, choice in ((_Request(rope_diameter_m=0.005), row),                   # 3.2 px: could be it
+                        (_Request(), row),                                         # width not known
+                        (_Request(rope_diameter_m=0.008), RopeChoice(row.rope, source=RopeSource.BAND))):
+        res = measured()
+        _check_row_against_marker(res, "p.jpg", frame, choice, req, 4.0)
+        assert res.dbh_cm == 13.3 and not res.flags

@@ -3,7 +3,7 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from monodbh.toolkit.rope.select import Refusal, RopeChoice, RopeSource, rope_across_trunk
+from monodbh.toolkit.rope.select import Refusal, RopeChoice, RopeSource, rope_across_trunk, select_rope
 
 
 def test_rope_across_trunk_check():
@@ -60,3 +60,19 @@ def test_the_finder_check_refuses_a_band_it_cannot_see_unless_the_marker_is_wide
     _finder_stage(view, (200, 300), st, None, cfg, check=False)      # a strap wider than the finder knows
     assert view.looked == 0 and st.source is RopeSource.BAND and st.rope is band
     assert cfg.finder_check_max_marker_mm == 15.0
+
+
+def test_a_tap_on_the_ropes_loose_end_measures_the_ring_and_says_so():
+    img = np.full((240, 320, 3), (120, 125, 115), np.uint8)
+    img[:, 130:190] = (95, 85, 72)                             # a trunk
+    img[100:103, 130:190] = (185, 45, 35)                      # the rope round it
+    img[100:170, 187:190] = (180, 42, 32)                      # a loose end hanging from the knot
+    inst = np.zeros((240, 320), np.int32)
+    inst[:, 130:190] = 1
+    on_end = select_rope(img, lambda: inst, 4.0, pick_xy=(188, 150))
+    assert on_end and on_end.source is RopeSource.BAND and on_end.flags == ["pick_on_rope_end"]
+    assert abs(on_end.rope.center_xy[1] - 101) < 1.5
+    on_ring = select_rope(img, lambda: inst, 4.0, pick_xy=(160, 101))
+    assert on_ring and on_ring.flags == []
+    on_bark = select_rope(img, lambda: inst, 4.0, pick_xy=(150, 200))
+    assert on_bark.refusal is Refusal.PICK_MISSED

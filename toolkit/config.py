@@ -46,6 +46,10 @@ class MeasureConfig:
     edge_mask_zoom : the mask that guides the search for the roped stem's edges at the rope comes
         from a second segmenter pass on a square crop around the rope, this fraction of the working
         image's long side (None: the whole photo's mask; docs/decisions/zoomed-edge-mask.md).
+    row_marker_max_px : with the marker's width known, a rope found only as a faint red row across
+        a trunk (the stem search) is refused where the marker at the measured distance would be
+        this many working-image pixels thick or more: the band detector sees so thick a marker as
+        a line (None: no check; docs/decisions/stem-search.md).
     rope : the rope cascade's parameters (:class:`~monodbh.toolkit.rope.config.RopeConfig`).
     geometry : the geometry's parameters (:class:`~monodbh.toolkit.geometry.config.GeometryConfig`):
         up direction, stem base, scale candidates and their combination, sigma, DBH.
@@ -60,6 +64,7 @@ class MeasureConfig:
     ort_spin: bool = field(default_factory=lambda: os.environ.get("MONODBH_ORT_SPIN", "0") == "1")
     sideways_score_max: float = -60.0
     edge_mask_zoom: float | None = 0.3
+    row_marker_max_px: float | None = 4.0
     rope: RopeConfig = field(default_factory=RopeConfig)
     geometry: GeometryConfig = field(default_factory=GeometryConfig)
 

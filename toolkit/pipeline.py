@@ -212,9 +212,10 @@ def _measure_frame(path, rgb, camera, req: _Request, sess: Session, tm: dict, fr
                    seg_job, depth_job) -> MeasureResult:
     """Rope, roped stem, ruler, geometry, result: the stages after the networks were started."""
     cell = _mask_cell(sess, frame)
-    choice = _find_rope(path, frame, seg_job, cell, req, sess, tm)
+    at_tap = _TapInstances(sess, frame, seg_job, req, cell)
+    choice = _find_rope(path, frame, at_tap, cell, req, sess, tm)
     seg = seg_job.result()
-    stem = _roped_stem(choice, seg.instance, frame.shape, cell)
+    stem = _roped_stem(choice, at_tap(), frame.shape, cell)
     from .rope.ruler import rope_ruler
     ruler = rope_ruler(rgb, camera, frame, choice.rope, is_line=choice.source.is_line,
                        diameter_known=bool(req.rope_diameter_m),
@@ -224,6 +225,8 @@ def _measure_frame(path, rgb, camera, req: _Request, sess: Session, tm: dict, fr
     perc = _perception(frame, choice, stem, ruler, seg.semantic == 1, depth_job, silhouette, sess, req)
     res = measure_from_perception(perc, str(path), timings=tm, config=sess.config.geometry)
     flags = stem.flags + choice.flags + ruler.flags
+    if at_tap.added and stem.tid == int(at_tap().max()):
+        flags.append("trunk_segmented_at_tap")  # the roped stem came from the second pass at the tap
     if sideways_score(frame.image) < sess.config.sideways_score_max:
         flags.append("photo_maybe_sideways")    # light from a side: turned 90 degrees without EXIF?
     if sess.sigma_network is None:
@@ -236,8 +239,9 @@ def _measure_frame(path, rgb, camera, req: _Request, sess: Session, tm: dict, fr
     if res.error:
         res.error = f"{path}: {res.error}"
         return res
+    _check_row_against_marker(res, path, frame, choice, req, sess.config.row_marker_max_px)
     if req.want_cloud or req.want_debug:
-        _clouds(res, frame, seg.instance, stem, silhouette, depth_job, tm)
+        _clouds(res, frame, at_tap(), stem, silhouette, depth_job, tm)
     if req.want_debug:
         res.debug.update(image=frame.image, image_scale=frame.scale, rope_polyline=np.asarray(choice.rope.polyline),
                          tree_mask=stem.tree_mask, rope_thickness_px=ruler.thickness_px,
@@ -245,6 +249,30 @@ def _measure_frame(path, rgb, camera, req: _Request, sess: Session, tm: dict, fr
                          rope_flags=choice.flags)
     res.timings_ms = _stage_times(tm, res.timings_ms)
     return res
+
+
+def _check_row_against_marker(res: MeasureResult, path, frame: WorkFrame, choice: RopeChoice, req: _Request,
+                              max_px: float) -> None:
+    """A rope found only as a faint red row across a trunk (the stem search) is thinner than a
+    pixel or two; with the marker's width known, the marker at the measured distance would be
+    ``t = fx w / Z`` working-image pixels thick. Where that is ``max_px`` or more, the band
+    detector would have seen it as a line: the row is something else (a branch, reddish bark) and
+    the photo is refused, or at a tap flagged ``row_thinner_than_marker`` (the user said it is the
+    rope); raises :class:`MonodbhError` where refused."""
+    if choice.source not in (RopeSource.STEM_PROFILE, RopeSource.STEM_VERIFIED) or not req.rope_diameter_m:
+        return
+    if not res.distance_m or max_px is None:
+        return
+    t = float(frame.camera.K[0, 0]) * req.rope_diameter_m / float(res.distance_m)
+    if t < max_px:
+        return
+    if req.pick_xy is not None:
+        res.flags = list(res.flags or []) + ["row_thinner_than_marker"]
+        return
+    x, y = frame.to_photo(choice.rope.center_xy)
+    raise MonodbhError(f"{path}: no red rope found (the faint red row at ({x:.0f},{y:.0f}) is much thinner "
+                       f"than the {1000 * req.rope_diameter_m:g} mm marker would be at {res.distance_m:.1f} m, "
+                       f"{t:.0f} px; --pick X,Y on the marker to measure there)")
 
 
 def _mask_cell(sess: Session, frame: WorkFrame) -> float:
@@ -255,12 +283,50 @@ def _mask_cell(sess: Session, frame: WorkFrame) -> float:
     return max(w / out_shape[-1], h / out_shape[-2])
 
 
-def _find_rope(path, frame: WorkFrame, seg_job, cell: float, req: _Request, sess: Session, tm: dict) -> RopeChoice:
+class _TapInstances:
+    """The segmenter's (h, w) tree instances, as the rope cascade and the roped stem read them.
+
+    At a tap (``--pick``) with no tree within a mask cell of it, the segmenter is run again on a
+    square crop round the tap (``MeasureConfig.edge_mask_zoom`` of the long side, as for the edge
+    mask) and the tree it finds under the tap is added as a new instance where the whole photo's
+    pass left background: a thin far trunk can vanish at the segmenter's 256 x 256 input, and the
+    user has said the rope is there (docs/decisions/zoomed-edge-mask.md). Computed once."""
+
+    def __init__(self, sess: Session, frame: WorkFrame, seg_job, req: _Request, cell: float):
+        self.sess, self.frame, self.seg_job, self.cell = sess, frame, seg_job, cell
+        self.pick = None if req.pick_xy is None else tuple(float(v) for v in frame.to_work(req.pick_xy))
+        self.instance = None
+        self.added = False
+
+    def __call__(self) -> np.ndarray:
+        if self.instance is None:
+            self.instance = self.seg_job.result().instance
+            zoom = self.sess.config.edge_mask_zoom
+            r = max(6, int(round(self.cell)))
+            if self.pick is not None and zoom is not None and not instance_in_window(self.instance, self.pick, r):
+                self._add_tree_at_tap(zoom, r)
+        return self.instance
+
+    def _add_tree_at_tap(self, zoom: float, r: int) -> None:
+        x0, y0, x1, y1 = square_crop(self.pick, zoom, self.frame.shape)
+        crop = np.ascontiguousarray(self.frame.image[y0:y1, x0:x1])
+        inst = self.sess.segmenter.predict(crop, size=(x1 - x0, y1 - y0)).instance
+        tid = instance_in_window(inst, (self.pick[0] - x0, self.pick[1] - y0), r)
+        if not tid:
+            return
+        out = self.instance.copy()
+        region = out[y0:y1, x0:x1]
+        region[(inst == tid) & (region == 0)] = int(out.max()) + 1
+        self.instance, self.added = out, True
+
+
+def _find_rope(path, frame: WorkFrame, at_tap: _TapInstances, cell: float, req: _Request, sess: Session,
+               tm: dict) -> RopeChoice:
     """:func:`~.rope.select.select_rope` on the working image; a refusal raises the user's error,
     with the places it names in the photo's own pixels (the ones the user sees and taps)."""
     t = time.perf_counter()
-    pick = None if req.pick_xy is None else tuple(float(v) for v in frame.to_work(req.pick_xy))
-    choice = select_rope(frame.image, lambda: seg_job.result().instance, cell, pick_xy=pick,
+    pick = at_tap.pick
+    choice = select_rope(frame.image, at_tap, cell, pick_xy=pick,
                          verifier=sess.rope_verifier, finder=sess.rope_finder, config=sess.config.rope,
                          marker_width_mm=None if req.rope_diameter_m is None else 1000.0 * req.rope_diameter_m)
     tm.update(choice.timings_ms)

@@ -85,6 +85,9 @@ FLAG_TEXT = {
     "rope_verified_by_network": "the faint marker was confirmed by the rope-verifier network",
     "rope_found_by_network": "the marker was found by the rope-finder network",
     "rope_chosen_by_network": "the rope-finder network chose the marker among red bands",
+    "row_thinner_than_marker": "the tapped faint red row is much thinner than the marker would be at this distance",
+    "trunk_segmented_at_tap": "the trunk at the tap was found by segmenting a close-up of it",
+    "pick_on_rope_end": "the tap was on the marker's knot or loose end: the ring it hangs from was measured",
     "sigma_model_default": "no measured error model for these networks: built-in sigmas",
 }
 

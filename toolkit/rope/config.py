@@ -183,6 +183,9 @@ class RopeConfig:
         ``ambiguity_margin`` of the best one) are checked.
     pick_near_px : a tap within ``max(pick_near_px, 2 mask cells)`` of the band detector's band
         is that band (on a near stem the band runs far from its middle).
+    pick_end_reach : a tap farther off, but on red running on unbroken into the band (its knot or
+        a loose end hanging from it, :func:`~.geometry.red_path_to_band`), is that band too, up
+        to this fraction of the working image's long side away (docs/decisions/rope-finder.md).
     finder_cross_check : the rope finder checks the classical detectors' rope
         (docs/decisions/rope-finder.md).
     finder_check_max_marker_mm : the check is skipped when the user's marker is wider than this
@@ -199,6 +202,7 @@ class RopeConfig:
     weak_score: float = 0.0
     ambiguity_candidates: int = 4
     pick_near_px: float = 15.0
+    pick_end_reach: float = 0.25
     finder_cross_check: bool = True
     finder_check_max_marker_mm: float = 15.0
     wide_marker_min_elongation: float = 2.5

@@ -1,6 +1,7 @@
 """Pixel geometry shared by the rope detectors and their callers: distances from a point to a
-rope band, the tree instance at a point, the tree-mask run a band crosses; imported by the
-modules of :mod:`monodbh.toolkit.rope` and by the pipeline.
+rope band, whether a point lies on red that runs on into a band, the tree instance at a point,
+the tree-mask run a band crosses; imported by the modules of :mod:`monodbh.toolkit.rope` and by
+the pipeline.
 
 Examples
 --------
@@ -10,10 +11,13 @@ Examples
 """
 from __future__ import annotations
 
+import cv2
 import numpy as np
 
-__all__ = ["distance_to_vertices", "distance_to_chord", "distance_to_band", "instance_in_window",
-           "instance_at_or_near", "trunk_run"]
+from .redness import redness_map
+
+__all__ = ["distance_to_vertices", "distance_to_chord", "distance_to_band", "red_path_to_band",
+           "instance_in_window", "instance_at_or_near", "trunk_run"]
 
 
 def distance_to_vertices(polyline: np.ndarray, xy) -> float:
@@ -57,6 +61,57 @@ def distance_to_band(rope, xy) -> float:
     """
     p = rope.polyline if rope.polyline is not None and len(rope.polyline) else np.asarray([rope.center_xy])
     return distance_to_vertices(np.asarray(p, np.float64), xy)
+
+
+def red_path_to_band(img: np.ndarray, rope, xy, *, reach_px: float, level: float = 0.5,
+                     min_redness: float = 0.03) -> bool:
+    """Whether ``xy`` lies on red that runs on, unbroken, into the band of ``rope``: the marker's
+    knot or a loose end hanging from it, which a user may tap instead of the ring.
+
+    The red-ness (:func:`~.redness.redness_map`) is read in a window holding the band and ``xy``;
+    a pixel is red at ``level`` x the median red-ness on the band's centre line or more (at least
+    ``min_redness``). The red pixels (8-connected) within ``max(3, thickness)`` px of ``xy`` must
+    belong to a region that also covers the band's centre line.
+
+    Parameters
+    ----------
+    img : (H, W, 3) uint8 RGB, the band's pixels.
+    rope : a found band (``polyline`` (N, 2), ``thickness_px``).
+    xy : (x, y) pixels.
+    reach_px : farther than this from the band's centre line, False without looking.
+    level, min_redness : the red threshold, as above.
+
+    Examples
+    --------
+    >>> img = np.full((60, 60, 3), 120, np.uint8)
+    >>> img[20:23, 10:40] = (200, 40, 30)           # the ring
+    >>> img[20:50, 38:41] = (200, 40, 30)           # a loose end hanging from it
+    >>> class Band: polyline = np.array([[10.0, 21.0], [39.0, 21.0]]); thickness_px = 3.0
+    >>> red_path_to_band(img, Band, (39, 45), reach_px=40), red_path_to_band(img, Band, (20, 45), reach_px=40)
+    (True, False)
+    """
+    P = np.asarray(rope.polyline if rope.polyline is not None else [rope.center_xy], np.float64).reshape(-1, 2)
+    px, py = float(xy[0]), float(xy[1])
+    if distance_to_vertices(P, (px, py)) > reach_px:
+        return False
+    H, W = img.shape[:2]
+    r = max(3.0, float(rope.thickness_px or 0.0))
+    pad = int(np.ceil(2 * r + 4))
+    x0, y0 = max(0, int(min(P[:, 0].min(), px)) - pad), max(0, int(min(P[:, 1].min(), py)) - pad)
+    x1, y1 = min(W, int(max(P[:, 0].max(), px)) + pad + 1), min(H, int(max(P[:, 1].max(), py)) + pad + 1)
+    if x1 - x0 < 2 or y1 - y0 < 2:
+        return False
+    F = redness_map(np.ascontiguousarray(img[y0:y1, x0:x1]))
+    Q = np.round(P - (x0, y0)).astype(int)
+    Q = Q[(Q[:, 0] >= 0) & (Q[:, 0] < x1 - x0) & (Q[:, 1] >= 0) & (Q[:, 1] < y1 - y0)]
+    if not len(Q):
+        return False
+    thr = max(min_redness, level * float(np.median(F[Q[:, 1], Q[:, 0]])))
+    _, lab = cv2.connectedComponents((F >= thr).astype(np.uint8), connectivity=8)
+    on_band = set(np.unique(lab[Q[:, 1], Q[:, 0]]).tolist()) - {0}
+    yy, xx = np.mgrid[y0:y1, x0:x1]
+    near = np.hypot(xx - px, yy - py) <= r
+    return bool(on_band & (set(np.unique(lab[near]).tolist()) - {0}))
 
 
 def instance_in_window(instance: np.ndarray, xy, radius: int) -> int:

@@ -15,8 +15,9 @@ Order (each step runs only where the ones before it leave the photo without a ro
 4. the finder checks a rope the first two found: where it sees nothing at that band, its own
    confident band replaces it, or the photo is refused.
 
-At a tap (``pick_xy``) the band detector's band near the tap is kept when rope-like, else the
-stem search and then the finder look at the tap; the finder check is skipped.
+At a tap (``pick_xy``) the band detector's band near the tap is kept when rope-like (or when the
+tap lies on red that runs on into it: the knot or a loose end hanging from it), else the stem
+search and then the finder look at the tap; the finder check is skipped.
 """
 from __future__ import annotations
 
@@ -30,7 +31,7 @@ import numpy as np
 from .band import detect_rope
 from .config import RopeConfig
 from .finder import finder_check, finder_support, rope_from_finder
-from .geometry import distance_to_band, instance_in_window
+from .geometry import distance_to_band, instance_in_window, red_path_to_band
 from .stem_search import detect_rope_on_stems, stem_evidence_choice
 
 __all__ = ["RopeSource", "Refusal", "RopeChoice", "select_rope", "rope_across_trunk"]
@@ -99,20 +100,23 @@ class RopeChoice:
     refusal : why none is measured (None when a rope was chosen).
     at_xy : (2,) working-image pixel the refusal is about (the refused band), or None.
     timings_ms : ``segment`` (the wait for the segmenter), ``rope_finder`` where it ran.
+    tap_on_rope_end : the tap lay off the band, on red running on into it (a knot or loose end).
     """
     rope: object
     source: RopeSource | None = None
     refusal: Refusal | None = None
     at_xy: np.ndarray | None = None
     timings_ms: dict = field(default_factory=dict)
+    tap_on_rope_end: bool = False
 
     def __bool__(self) -> bool:
         return self.refusal is None
 
     @property
     def flags(self) -> list[str]:
-        """The result flags of the chosen rope's detector."""
-        return self.source.flags if self.source is not None else []
+        """The result flags of the chosen rope's detector (and ``pick_on_rope_end``)."""
+        out = self.source.flags if self.source is not None else []
+        return out + ["pick_on_rope_end"] if self.tap_on_rope_end else out
 
 
 def rope_across_trunk(rope, instance: np.ndarray, cell: float) -> bool:
@@ -199,6 +203,7 @@ class _State:
     source: RopeSource | None = None
     weak_refused: bool = False
     pick_missed: bool = False
+    tap_on_rope_end: bool = False
 
 
 def select_rope(img: np.ndarray, segment: Callable[[], np.ndarray], cell: float, *, pick_xy=None,
@@ -238,6 +243,9 @@ def select_rope(img: np.ndarray, segment: Callable[[], np.ndarray], cell: float,
     st.weak_refused = bool(st.rope) and st.rope.weak and not rope_across_trunk(st.rope, instance, cell)
     off_pick = (pick_xy is not None and bool(st.rope)
                 and distance_to_band(st.rope, pick_xy) > max(cfg.pick_near_px, 2 * cell))
+    if off_pick and red_path_to_band(img, st.rope, pick_xy, reach_px=cfg.pick_end_reach * max(img.shape[:2])):
+        # the tap is on the knot or a loose end hanging from the band: the band is what was meant
+        pick_xy, off_pick, st.tap_on_rope_end = tuple(np.asarray(st.rope.center_xy, float)), False, True
     _stem_search(img, instance, st, pick_xy, off_pick, verifier, cfg)
     # the finder knows ropes, not wide straps: a band as thick as a strap seen from a measuring
     # distance is not checked by it but must lie across a segmented trunk; a thin band, or a row
@@ -344,4 +352,4 @@ def _choice(st: _State, pick_xy, tm: dict) -> RopeChoice:
                           timings_ms=tm)
     if not rope:
         return RopeChoice(rope, refusal=Refusal.NOT_FOUND, timings_ms=tm)
-    return RopeChoice(rope, source=st.source, timings_ms=tm)
+    return RopeChoice(rope, source=st.source, timings_ms=tm, tap_on_rope_end=st.tap_on_rope_end)
