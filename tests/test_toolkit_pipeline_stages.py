@@ -113,15 +113,19 @@ def test_a_tap_where_the_photo_has_no_tree_adds_the_tree_a_close_up_finds_there(
     seg = _CropSeg(lambda rgb: int(rgb[0, 0, 0]))
     sess = SimpleNamespace(segmenter=seg, config=MeasureConfig())
     at_tap = _TapInstances(sess, frame, _Seg(whole), _Request(pick_xy=(50.0, 100.0)), 4.0)
+    assert at_tap() is whole and not seg.calls                 # the photo's own until asked
+    assert at_tap.add_tree_at_tap() and at_tap.added and len(seg.calls) == 1
     inst = at_tap()
-    assert at_tap.added and len(seg.calls) == 1
     ys, xs = np.nonzero(inst == 4)                              # a new id, after the photo's own
     assert xs.min() == 40 and xs.max() == 59 and ys.min() == 55 and ys.max() == 144
-    assert (inst == 3).sum() == whole.sum() // 3 and at_tap() is inst        # kept, computed once
+    assert (inst == 3).sum() == (whole == 3).sum()
+    assert not at_tap.add_tree_at_tap() and len(seg.calls) == 1              # once
     on_tree = _TapInstances(sess, frame, _Seg(whole), _Request(pick_xy=(210.0, 100.0)), 4.0)
-    assert on_tree() is whole and not on_tree.added and len(seg.calls) == 1  # no second pass
+    assert not on_tree.add_tree_at_tap() and on_tree() is whole and len(seg.calls) == 1
     no_tap = _TapInstances(sess, frame, _Seg(whole), _Request(), 4.0)
-    assert no_tap() is whole and len(seg.calls) == 1
+    assert not no_tap.add_tree_at_tap() and len(seg.calls) == 1
+    nothing_there = _TapInstances(sess, frame, _Seg(whole), _Request(pick_xy=(150.0, 100.0)), 4.0)
+    assert not nothing_there.add_tree_at_tap() and nothing_there() is whole   # the close-up finds none
 
 
 def test_edge_mask_zoom_is_checked():
@@ -152,3 +156,19 @@ def test_a_faint_row_much_thinner_than_the_known_marker_is_refused_or_flagged_at
         res = measured()
         _check_row_against_marker(res, "p.jpg", frame, choice, req, 4.0)
         assert res.dbh_cm == 13.3 and not res.flags
+
+
+def test_a_distance_where_no_marker_is_seen_or_a_giant_dbh_is_refused_as_implausible():
+    from types import SimpleNamespace
+
+    from monodbh.toolkit.pipeline import _check_plausible
+    from monodbh.toolkit.result import MeasureResult
+    # a 1280 px working image of a 3200 px photo: fx 1000 there, 2500 in the photo's pixels
+    frame = SimpleNamespace(camera=SimpleNamespace(K=np.array([[1000.0, 0, 640], [0, 1000.0, 480], [0, 0, 1]])),
+                            scale=(0.4, 0.4))
+    cfg = MeasureConfig()
+    _check_plausible(MeasureResult(photo="p.jpg", dbh_cm=40.0, distance_m=120.0), "p.jpg", frame, cfg)
+    with pytest.raises(MonodbhError, match=r"p.jpg: implausible result \(DBH 900 cm at 130 m.*beyond 125 m"):
+        _check_plausible(MeasureResult(photo="p.jpg", dbh_cm=900.0, distance_m=130.0), "p.jpg", frame, cfg)
+    with pytest.raises(MonodbhError, match="implausible result"):
+        _check_plausible(MeasureResult(photo="p.jpg", dbh_cm=600.0, distance_m=10.0), "p.jpg", frame, cfg)

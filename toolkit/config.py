@@ -50,6 +50,9 @@ class MeasureConfig:
         a trunk (the stem search) is refused where the marker at the measured distance would be
         this many working-image pixels thick or more: the band detector sees so thick a marker as
         a line (None: no check; docs/decisions/stem-search.md).
+    max_marker_width_m, max_dbh_cm : a result is refused as implausible where the widest marker
+        supported (a 50 mm strap) would be under one photo pixel thick at its distance (no rope is
+        seen there), or where its DBH is over this (docs/decisions/taps.md).
     rope : the rope cascade's parameters (:class:`~monodbh.toolkit.rope.config.RopeConfig`).
     geometry : the geometry's parameters (:class:`~monodbh.toolkit.geometry.config.GeometryConfig`):
         up direction, stem base, scale candidates and their combination, sigma, DBH.
@@ -65,6 +68,8 @@ class MeasureConfig:
     sideways_score_max: float = -60.0
     edge_mask_zoom: float | None = 0.3
     row_marker_max_px: float | None = 4.0
+    max_marker_width_m: float = 0.05
+    max_dbh_cm: float = 500.0
     rope: RopeConfig = field(default_factory=RopeConfig)
     geometry: GeometryConfig = field(default_factory=GeometryConfig)
 

@@ -239,6 +239,7 @@ def _measure_frame(path, rgb, camera, req: _Request, sess: Session, tm: dict, fr
     if res.error:
         res.error = f"{path}: {res.error}"
         return res
+    _check_plausible(res, path, frame, sess.config)
     _check_row_against_marker(res, path, frame, choice, req, sess.config.row_marker_max_px)
     if req.want_cloud or req.want_debug:
         _clouds(res, frame, at_tap(), stem, silhouette, depth_job, tm)
@@ -249,6 +250,22 @@ def _measure_frame(path, rgb, camera, req: _Request, sess: Session, tm: dict, fr
                          rope_flags=choice.flags)
     res.timings_ms = _stage_times(tm, res.timings_ms)
     return res
+
+
+def _check_plausible(res: MeasureResult, path, frame: WorkFrame, cfg: MeasureConfig) -> None:
+    """Refuse a result no tree can give: a distance at which the widest marker
+    (``cfg.max_marker_width_m``) would be under one photo pixel thick, where no rope can be seen,
+    or a DBH over ``cfg.max_dbh_cm``. Such a result comes from a band or a stem base taken
+    elsewhere (e.g. a base found a few pixels below a band near the horizon); raises
+    :class:`MonodbhError`."""
+    fx_photo = float(frame.camera.K[0, 0]) / float(frame.scale[0])
+    far = res.distance_m is not None and res.distance_m > cfg.max_marker_width_m * fx_photo
+    wide = res.dbh_cm is not None and res.dbh_cm > cfg.max_dbh_cm
+    if far or wide:
+        raise MonodbhError(f"{path}: implausible result (DBH {res.dbh_cm:.0f} cm at {res.distance_m:.0f} m: "
+                           f"a {1000 * cfg.max_marker_width_m:g} mm marker is under a pixel thick beyond "
+                           f"{cfg.max_marker_width_m * fx_photo:.0f} m): the rope or the stem base was taken "
+                           f"elsewhere; --pick X,Y on the rope, --base X,Y on the stem's foot")
 
 
 def _check_row_against_marker(res: MeasureResult, path, frame: WorkFrame, choice: RopeChoice, req: _Request,
@@ -286,11 +303,12 @@ def _mask_cell(sess: Session, frame: WorkFrame) -> float:
 class _TapInstances:
     """The segmenter's (h, w) tree instances, as the rope cascade and the roped stem read them.
 
-    At a tap (``--pick``) with no tree within a mask cell of it, the segmenter is run again on a
-    square crop round the tap (``MeasureConfig.edge_mask_zoom`` of the long side, as for the edge
-    mask) and the tree it finds under the tap is added as a new instance where the whole photo's
-    pass left background: a thin far trunk can vanish at the segmenter's 256 x 256 input, and the
-    user has said the rope is there (docs/decisions/zoomed-edge-mask.md). Computed once."""
+    A tap (``--pick``) that finds no rope may lie on a thin far trunk the segmenter missed at its
+    256 x 256 input. Where no tree lies within a mask cell of the tap, :meth:`add_tree_at_tap`
+    runs the segmenter again on a square crop round the tap (``MeasureConfig.edge_mask_zoom`` of
+    the long side, as for the edge mask) and adds the tree it finds under the tap as a new
+    instance where the whole photo's pass left background; the cascade is then run again
+    (docs/decisions/taps.md)."""
 
     def __init__(self, sess: Session, frame: WorkFrame, seg_job, req: _Request, cell: float):
         self.sess, self.frame, self.seg_job, self.cell = sess, frame, seg_job, cell
@@ -301,23 +319,25 @@ class _TapInstances:
     def __call__(self) -> np.ndarray:
         if self.instance is None:
             self.instance = self.seg_job.result().instance
-            zoom = self.sess.config.edge_mask_zoom
-            r = max(6, int(round(self.cell)))
-            if self.pick is not None and zoom is not None and not instance_in_window(self.instance, self.pick, r):
-                self._add_tree_at_tap(zoom, r)
         return self.instance
 
-    def _add_tree_at_tap(self, zoom: float, r: int) -> None:
+    def add_tree_at_tap(self) -> bool:
+        """Add the tree a close-up finds under the tap (see above); whether one was added."""
+        zoom, inst0 = self.sess.config.edge_mask_zoom, self()
+        r = max(6, int(round(self.cell)))
+        if self.added or self.pick is None or zoom is None or instance_in_window(inst0, self.pick, r):
+            return False
         x0, y0, x1, y1 = square_crop(self.pick, zoom, self.frame.shape)
         crop = np.ascontiguousarray(self.frame.image[y0:y1, x0:x1])
         inst = self.sess.segmenter.predict(crop, size=(x1 - x0, y1 - y0)).instance
         tid = instance_in_window(inst, (self.pick[0] - x0, self.pick[1] - y0), r)
         if not tid:
-            return
-        out = self.instance.copy()
+            return False
+        out = inst0.copy()
         region = out[y0:y1, x0:x1]
         region[(inst == tid) & (region == 0)] = int(out.max()) + 1
         self.instance, self.added = out, True
+        return True
 
 
 def _find_rope(path, frame: WorkFrame, at_tap: _TapInstances, cell: float, req: _Request, sess: Session,
@@ -326,9 +346,14 @@ def _find_rope(path, frame: WorkFrame, at_tap: _TapInstances, cell: float, req: 
     with the places it names in the photo's own pixels (the ones the user sees and taps)."""
     t = time.perf_counter()
     pick = at_tap.pick
-    choice = select_rope(frame.image, at_tap, cell, pick_xy=pick,
-                         verifier=sess.rope_verifier, finder=sess.rope_finder, config=sess.config.rope,
-                         marker_width_mm=None if req.rope_diameter_m is None else 1000.0 * req.rope_diameter_m)
+    marker_mm = None if req.rope_diameter_m is None else 1000.0 * req.rope_diameter_m
+    choice = select_rope(frame.image, at_tap, cell, pick_xy=pick, verifier=sess.rope_verifier,
+                         finder=sess.rope_finder, config=sess.config.rope, marker_width_mm=marker_mm)
+    if choice.refusal in (Refusal.PICK_MISSED, Refusal.NOT_FOUND) and at_tap.add_tree_at_tap():
+        seg_wait = choice.timings_ms.get("segment", 0.0)
+        choice = select_rope(frame.image, at_tap, cell, pick_xy=pick, verifier=sess.rope_verifier,
+                             finder=sess.rope_finder, config=sess.config.rope, marker_width_mm=marker_mm)
+        choice.timings_ms["segment"] = seg_wait + choice.timings_ms.get("segment", 0.0)
     tm.update(choice.timings_ms)
     tm["rope"] = 1000 * (time.perf_counter() - t) - tm["segment"]
     if choice:

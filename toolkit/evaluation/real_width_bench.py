@@ -5,7 +5,7 @@ The first figure on real photos with a ground truth. Each outlined trunk of the 
 gets a red rope painted across it (:func:`.real_rope_bench.paint_rope`, the outline's run at the
 chosen row: a row where the outline is one run, steady in width above and below), one trunk and
 one thickness per painted photo. The photo is then measured as a user would (``measure_photo``,
-no pick, a default camera fx = 0.8 x width) and the stem's width the pipeline took at the rope
+no pick, or with ``--tap`` a tap on the painted rope's middle; a default camera fx = 0.8 x width) and the stem's width the pipeline took at the rope
 (its edge pair, photo pixels) is compared with the outline's width along the same line.
 
 This is the width alone (the scale has no truth on these photos): the part of the DBH that the
@@ -15,7 +15,7 @@ on trunks of 20-80 px the truth itself is good to a few per cent.
 
 Usage::
 
-    python -m monodbh.toolkit.evaluation.real_width_bench ../shared/data/real_trees [--out-dir runs/real_width]
+    python -m monodbh.toolkit.evaluation.real_width_bench ../shared/data/real_trees [--out-dir runs/real_width] [--tap]
 
 Imported by nothing (a command); imports the pipeline, the segmenter's outlines bench and
 ``monodbh.calib``.
@@ -113,8 +113,10 @@ def line_run(mask: np.ndarray, center_xy, direction, step: float = 0.25) -> Opti
     return float((hi - lo + 1) * step)
 
 
-def run(folder: Path, out_dir: Path, outlines: dict, ratios=RATIOS, seed: int = 26, session=None) -> list[dict]:
-    """Paint a rope across every wide outlined trunk at every ratio and measure; one dict each."""
+def run(folder: Path, out_dir: Path, outlines: dict, ratios=RATIOS, seed: int = 26, session=None,
+        tap: bool = False) -> list[dict]:
+    """Paint a rope across every wide outlined trunk at every ratio and measure; one dict each.
+    ``tap``: the user taps the painted rope's middle (``dbh measure --pick``)."""
     from monodbh.calib import Camera, load_photo
     from monodbh.toolkit import pipeline as pl
     from monodbh.toolkit.frames import work_frame
@@ -144,7 +146,8 @@ def run(folder: Path, out_dir: Path, outlines: dict, ratios=RATIOS, seed: int = 
                 q = out_dir / f"{p.stem}_t{k}_r{int(round(100 * ratio)):02d}.jpg"
                 cv2.imwrite(str(q), cv2.cvtColor(paint_rope(rgb, y0, xa, xb, T, sag, rng), cv2.COLOR_RGB2BGR),
                             [cv2.IMWRITE_JPEG_QUALITY, 90])
-                r = pl.measure_photo(str(q), cam, session=sess, want_debug=True)
+                pick = (0.5 * (xa + xb), y0 + sag) if tap else None
+                r = pl.measure_photo(str(q), cam, session=sess, want_debug=True, pick_xy=pick)
                 row = dict(photo=name, trunk=k, ratio=ratio, thickness_px=round(T, 2), row=y0,
                            outline_px=int(w), dbh_cm=r.dbh_cm, width_px=None, true_px=None, err_pct=None,
                            at_painted=None, error=None if not r.error else r.error.split(": ", 1)[-1],
@@ -185,6 +188,7 @@ def main(argv=None) -> int:
     ap.add_argument("--outlines", type=Path, default=OUTLINES)
     ap.add_argument("--seed", type=int, default=26)
     ap.add_argument("--models-dir", type=Path, help="networks other than the shipped ones (a models folder)")
+    ap.add_argument("--tap", action="store_true", help="tap the painted rope's middle (dbh measure --pick)")
     a = ap.parse_args(argv)
     if not a.folder.is_dir():
         print(f"error: {a.folder}: not a folder", file=sys.stderr)
@@ -193,7 +197,7 @@ def main(argv=None) -> int:
     if a.models_dir is not None:
         from monodbh.toolkit.pipeline import Session
         session = Session(a.models_dir)
-    rows = run(a.folder, a.out_dir, load_outlines(a.outlines), seed=a.seed, session=session)
+    rows = run(a.folder, a.out_dir, load_outlines(a.outlines), seed=a.seed, session=session, tap=a.tap)
     (a.out_dir / "rows.json").write_text(json.dumps(rows, indent=1))
     from rich.console import Console
     from rich.table import Table

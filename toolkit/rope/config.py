@@ -185,7 +185,7 @@ class RopeConfig:
         is that band (on a near stem the band runs far from its middle).
     pick_end_reach : a tap farther off, but on red running on unbroken into the band (its knot or
         a loose end hanging from it, :func:`~.geometry.red_path_to_band`), is that band too, up
-        to this fraction of the working image's long side away (docs/decisions/rope-finder.md).
+        to this fraction of the working image's long side away (docs/decisions/taps.md).
     finder_cross_check : the rope finder checks the classical detectors' rope
         (docs/decisions/rope-finder.md).
     finder_check_max_marker_mm : the check is skipped when the user's marker is wider than this
