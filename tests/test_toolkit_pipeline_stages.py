@@ -170,5 +170,5 @@ def test_a_distance_where_no_marker_is_seen_or_a_giant_dbh_is_refused_as_implaus
     _check_plausible(MeasureResult(photo="p.jpg", dbh_cm=40.0, distance_m=120.0), "p.jpg", frame, cfg)
     with pytest.raises(MonodbhError, match=r"p.jpg: implausible result \(DBH 900 cm at 130 m.*beyond 125 m"):
         _check_plausible(MeasureResult(photo="p.jpg", dbh_cm=900.0, distance_m=130.0), "p.jpg", frame, cfg)
-    with pytest.raises(MonodbhError, match="implausible result"):
+    with pytest.raises(MonodbhError, match=r"implausible result \(DBH 600 cm at 10 m: over 500 cm\)"):
         _check_plausible(MeasureResult(photo="p.jpg", dbh_cm=600.0, distance_m=10.0), "p.jpg", frame, cfg)

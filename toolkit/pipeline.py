@@ -262,10 +262,12 @@ def _check_plausible(res: MeasureResult, path, frame: WorkFrame, cfg: MeasureCon
     far = res.distance_m is not None and res.distance_m > cfg.max_marker_width_m * fx_photo
     wide = res.dbh_cm is not None and res.dbh_cm > cfg.max_dbh_cm
     if far or wide:
-        raise MonodbhError(f"{path}: implausible result (DBH {res.dbh_cm:.0f} cm at {res.distance_m:.0f} m: "
-                           f"a {1000 * cfg.max_marker_width_m:g} mm marker is under a pixel thick beyond "
-                           f"{cfg.max_marker_width_m * fx_photo:.0f} m): the rope or the stem base was taken "
-                           f"elsewhere; --pick X,Y on the rope, --base X,Y on the stem's foot")
+        why = (f"a {1000 * cfg.max_marker_width_m:g} mm marker is under a pixel thick beyond "
+               f"{cfg.max_marker_width_m * fx_photo:.0f} m" if far else f"over {cfg.max_dbh_cm:g} cm")
+        at = "" if res.distance_m is None else f" at {res.distance_m:.0f} m"
+        raise MonodbhError(f"{path}: implausible result (DBH {res.dbh_cm or 0:.0f} cm{at}: {why}): the rope or "
+                           f"the stem base was taken elsewhere; --pick X,Y on the rope, --base X,Y on the "
+                           f"stem's foot")
 
 
 def _check_row_against_marker(res: MeasureResult, path, frame: WorkFrame, choice: RopeChoice, req: _Request,
