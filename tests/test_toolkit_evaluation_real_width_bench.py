@@ -61,6 +61,8 @@ def test_a_painted_trunk_is_measured_at_its_outline(tmp_path):
     assert r["at_painted"], r
     assert abs(r["err_pct"]) < 5.0, r
     json.dumps(rows)
+    tapped, = wb.run(folder, tmp_path / "out_tap", outlines, ratios=(0.12,), tap=True)   # --tap: its middle tapped
+    assert tapped["at_painted"] and abs(tapped["err_pct"]) < 5.0, tapped
 
 
 def test_main_refuses_a_missing_folder(tmp_path, capsys):
