@@ -76,3 +76,30 @@ def test_a_tap_on_the_ropes_loose_end_measures_the_ring_and_says_so():
     assert on_ring and on_ring.flags == []
     on_bark = select_rope(img, lambda: inst, 4.0, pick_xy=(150, 200))
     assert on_bark.refusal is Refusal.PICK_MISSED
+
+
+class _OneBandView:
+    """A rope finder view that marks one band, 60 px long, through (160, 101)."""
+
+    def near(self, xy):
+        from monodbh.models.runtime.rope_finder import RopeComponent
+        return [RopeComponent(center_xy=(160.0, 101.0), direction=(1.0, 0.0), length_px=60.0, thickness_px=3.0,
+                              peak=6.0, mass=40.0, n=60, polyline=np.array([[130.0, 101.0], [190.0, 101.0]],
+                                                                           np.float32))]
+
+    def whole(self):
+        return self.near(None)
+
+
+def test_at_a_tap_the_finders_band_replaces_a_stem_search_row():
+    from monodbh.toolkit.rope.config import RopeConfig
+    from monodbh.toolkit.rope.select import _finder_stage, _State
+
+    row = SimpleNamespace(found=True, ambiguous=False, weak=False, center_xy=(240.0, 101.0),
+                          polyline=np.array([[100.0, 101.0], [380.0, 101.0]], np.float32))
+    st = _State(row, RopeSource.STEM_PROFILE)
+    _finder_stage(_OneBandView(), (240, 400), st, (160.0, 101.0), RopeConfig())
+    assert st.source is RopeSource.FINDER and abs(st.rope.center_xy[0] - 160.0) < 1.0
+    st = _State(row, RopeSource.STEM_PROFILE)
+    _finder_stage(_RefusingView(), (240, 400), st, (160.0, 101.0), RopeConfig())      # no band there
+    assert st.source is RopeSource.STEM_PROFILE and st.rope is row

@@ -17,7 +17,8 @@ Order (each step runs only where the ones before it leave the photo without a ro
 
 At a tap (``pick_xy``) the band detector's band near the tap is kept when rope-like (or when the
 tap lies on red that runs on into it: the knot or a loose end hanging from it), else the stem
-search and then the finder look at the tap; the finder check is skipped.
+search and then the finder look at the tap; a band the finder marks through the tap replaces the
+stem search's row there; the finder check is skipped.
 """
 from __future__ import annotations
 
@@ -305,6 +306,8 @@ def _finder_stage(view: _FinderView, shape, st: _State, pick_xy, cfg, check: boo
         _finder_check(view, shape, st, cfg)
     elif pick_xy is not None and rope and st.source is RopeSource.BAND:
         _finder_at_tap(view, shape, st, pick_xy, cfg)
+    elif pick_xy is not None and rope and st.source is RopeSource.STEM_PROFILE:
+        _finder_over_row_at_tap(view, shape, st, pick_xy, cfg)
 
 
 def _finder_alone(view, shape, st: _State, pick_xy, cfg) -> None:
@@ -336,6 +339,15 @@ def _finder_at_tap(view, shape, st: _State, pick_xy, cfg) -> None:
         alt = rope_from_finder(comps, shape, pick_xy=pick_xy, config=cfg.finder)
         if alt:
             st.rope, st.source = alt, RopeSource.FINDER
+
+
+def _finder_over_row_at_tap(view, shape, st: _State, pick_xy, cfg) -> None:
+    """At a tap the stem search's row spans the segmented instance under the tap, which may be a
+    trunk merged with its neighbours or a crown; where the finder marks a band through the tap,
+    that band (the rope's own extent) is taken instead (docs/decisions/taps.md)."""
+    alt = rope_from_finder(view.near(pick_xy), shape, pick_xy=pick_xy, config=cfg.finder)
+    if alt:
+        st.rope, st.source = alt, RopeSource.FINDER
 
 
 def _choice(st: _State, pick_xy, tm: dict) -> RopeChoice:
