@@ -304,10 +304,8 @@ def _finder_stage(view: _FinderView, shape, st: _State, pick_xy, cfg, check: boo
         return
     elif pick_xy is None and rope and not st.weak_refused:
         _finder_check(view, shape, st, cfg)
-    elif pick_xy is not None and rope and st.source is RopeSource.BAND:
+    elif pick_xy is not None and rope and st.source in (RopeSource.BAND, RopeSource.STEM_PROFILE):
         _finder_at_tap(view, shape, st, pick_xy, cfg)
-    elif pick_xy is not None and rope and st.source is RopeSource.STEM_PROFILE:
-        _finder_over_row_at_tap(view, shape, st, pick_xy, cfg)
 
 
 def _finder_alone(view, shape, st: _State, pick_xy, cfg) -> None:
@@ -330,22 +328,18 @@ def _finder_check(view, shape, st: _State, cfg) -> None:
 
 
 def _finder_at_tap(view, shape, st: _State, pick_xy, cfg) -> None:
-    """At a tap the band detector's band may lie up to two mask cells off (a band beside the rope's
-    end): where the finder marks a band right at the tap and none at that band, the tap's is taken."""
-    if distance_to_band(st.rope, pick_xy) <= cfg.finder.pick_radius_px:
+    """At a tap the finder's band through the tap replaces the band detector's band where that
+    lies off the tap (up to two mask cells: a band beside the rope's end) and the finder marks none
+    at it, and the stem search's row wherever the finder marks one: the row spans whatever instance
+    lies under the tap (a trunk merged with its neighbours, a crown), the band the rope's own
+    extent (docs/decisions/taps.md)."""
+    band = st.source is RopeSource.BAND
+    if band and distance_to_band(st.rope, pick_xy) <= cfg.finder.pick_radius_px:
         return
     comps = view.near(pick_xy)
-    if finder_support(comps, st.rope.center_xy, config=cfg.finder) < cfg.finder.support_min_peak:
-        alt = rope_from_finder(comps, shape, pick_xy=pick_xy, config=cfg.finder)
-        if alt:
-            st.rope, st.source = alt, RopeSource.FINDER
-
-
-def _finder_over_row_at_tap(view, shape, st: _State, pick_xy, cfg) -> None:
-    """At a tap the stem search's row spans the segmented instance under the tap, which may be a
-    trunk merged with its neighbours or a crown; where the finder marks a band through the tap,
-    that band (the rope's own extent) is taken instead (docs/decisions/taps.md)."""
-    alt = rope_from_finder(view.near(pick_xy), shape, pick_xy=pick_xy, config=cfg.finder)
+    if band and finder_support(comps, st.rope.center_xy, config=cfg.finder) >= cfg.finder.support_min_peak:
+        return
+    alt = rope_from_finder(comps, shape, pick_xy=pick_xy, config=cfg.finder)
     if alt:
         st.rope, st.source = alt, RopeSource.FINDER
 
