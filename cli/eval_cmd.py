@@ -35,7 +35,8 @@ def evaluate(
                                   "measure --pick) in every photo where it is visible: the middle of its "
                                   "visible pixels plus Gaussian noise of --tap-noise-px."),
     rope_known: bool = typer.Option(False, "--rope-known", help="Simulate a user who gives the rope's "
-                                    "diameter (dbh measure --rope-mm): each sample's true rope diameter."),
+                                    "diameter (dbh measure --rope-mm): each sample's true rope diameter; rope-free "
+                                    "samples get the median of the roped ones' (the marker the user carries)."),
     rope_mm: Optional[float] = typer.Option(None, "--rope-mm", min=1.0, max=100.0, help="Simulate a user "
                                             "whose marker width is set (dbh marker, or --rope-mm) for every "
                                             "photo, rope-free ones included: this width, mm.", show_default=False),

@@ -78,7 +78,10 @@ def test_eval_jobs_and_records_follow_the_samples(tmp_path):
     jobs = eval_jobs(samples, tap_rope=True, tap_noise_px=0.0, rope_known=True, out_dir=tmp_path / "o")
     assert [j.index for j in jobs] == [0, 1] and jobs[0].photo == str(tmp_path / "000000.jpg")
     assert jobs[0].pick_xy == (35.0, 20.0) and jobs[1].pick_xy is None       # the rope's middle pixel
-    assert jobs[0].rope_diameter_m == 0.01 and jobs[1].rope_diameter_m is None
+    # the rope-free photo gets the marker the user carries (the roped ones' median width)
+    assert jobs[0].rope_diameter_m == 0.01 and jobs[1].rope_diameter_m == pytest.approx(0.01)
+    assert eval_jobs(samples[1:], rope_known=True)[0].rope_diameter_m is None     # no marker to carry
+    assert eval_jobs(samples)[1].rope_diameter_m is None
     assert jobs[0].base_xy is None and jobs[0].out_dir == str(tmp_path / "o")
     # a user whose camera file holds a marker width: every photo gets it, rope-free ones too
     fixed = eval_jobs(samples, rope_mm=40.0)

@@ -121,7 +121,9 @@ def eval_jobs(samples: Sequence[EvalSample], *, tap_base: bool = False, tap_rope
     tap_noise_px : float
         1-sigma of the simulated taps, pixels per axis.
     rope_known : bool
-        Give each photo its rope's true diameter (``rope_diameter_m``).
+        Give each photo its rope's true diameter (``rope_diameter_m``); a rope-free photo gets
+        the median marker width of the roped ones, as a user whose camera file holds the width
+        of the marker they carry (``dbh marker``) measures every photo with it.
     rope_mm : float, optional
         Give every photo (rope-free ones included) this marker width, as a user whose camera
         file holds it (``dbh marker``) would; instead of ``rope_known``.
@@ -133,14 +135,21 @@ def eval_jobs(samples: Sequence[EvalSample], *, tap_base: bool = False, tap_rope
     list of toolkit.batch.Job
     """
     jobs = []
+    equipment_m = _median_marker_m(samples) if rope_known and rope_mm is None else None
     for n, s in enumerate(samples):
         base_xy = sample_base_tap(s.stem, s.meta, tap_noise_px, s.index) if tap_base else None
         pick_xy = sample_rope_tap(s.stem, s.meta, tap_noise_px, s.index) if tap_rope else None
         rope_m = (rope_mm / 1000.0 if rope_mm is not None
-                  else true_rope_diameter_m(s.meta) if rope_known else None)
+                  else (true_rope_diameter_m(s.meta) or equipment_m) if rope_known else None)
         jobs.append(Job(n, str(s.stem.with_suffix(".jpg")), s.camera, pick_xy=pick_xy, base_xy=base_xy,
                         rope_diameter_m=rope_m, out_dir=str(out_dir) if out_dir else None))
     return jobs
+
+
+def _median_marker_m(samples: Sequence[EvalSample]) -> Optional[float]:
+    """The median true marker width (m) of the roped ``samples``, None without any."""
+    widths = [w for w in (true_rope_diameter_m(s.meta) for s in samples) if w]
+    return float(np.median(widths)) if widths else None
 
 
 def eval_record(sample: EvalSample, result: dict) -> dict:
