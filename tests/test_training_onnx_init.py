@@ -139,3 +139,25 @@ def test_int8_file_accepted_within_its_own_quantisation_error(tmp_path):
     with pytest.raises(ValueError, match="re-quantised copy"):
         load_onnx_into(build("tree", "tiny"), int8, max_rel_l2=tight, feeds=feeds[:3], fit_steps=0,
                        calib_feeds=feeds, floor_factor=0.01)
+
+
+def test_the_warm_start_check_reads_the_first_data_folder(tmp_path, monkeypatch):
+    # inputs like those the shipped file was calibrated on: the run's first folder only (a later
+    # folder of another look saturates an int8 file more)
+    from monodbh.models.training import common
+
+    (tmp_path / "a").mkdir()
+    (tmp_path / "b").mkdir()
+    seen = {}
+
+    def fake_source(cfg):
+        seen["folders"] = list(cfg["folders"])
+        return "src"
+
+    monkeypatch.setattr(common, "source_from_config", fake_source)
+    monkeypatch.setattr(common, "calibration_inputs", lambda kind, n, seed, spec, src: [kind, n, src])
+    cfg = {"kind": "stem_base", "seed": 0, "data": {"type": "folders", "folders": [str(tmp_path / "a"),
+                                                                                  str(tmp_path / "b")]}}
+    assert common._init_feeds(cfg, None, n=3) == ["stem_base", 3, "src"]
+    assert seen["folders"] == [str(tmp_path / "a")]
+    assert common._init_feeds({"kind": "stem_base", "data": {"type": "list"}}, None) is None

@@ -219,11 +219,16 @@ def _init_feeds(config: dict[str, Any], spec: Any, n: int = 4,
 
     Statically quantised files saturate on random inputs (the shipped tree U-Net differs from
     its own fp32 export by 24 % relative L2 on standard-normal crops), so the recovered weights
-    are compared with the file on inputs like those it was calibrated on. ``None`` (random
-    inputs) when the data source cannot be rebuilt from its config (e.g. in-memory lists).
+    are compared with the file on inputs like those it was calibrated on: those of the run's
+    first data folder (later folders may hold another look, e.g. ``--look randomized``, on which
+    an int8 file saturates more). ``None`` (random inputs) when the data source cannot be
+    rebuilt from its config (e.g. in-memory lists).
     """
     try:
-        src = source_from_config(config.get("data") or {})
+        data = dict(config.get("data") or {})
+        if data.get("type") == "folders" and len(data.get("folders") or []) > 1:
+            data["folders"] = data["folders"][:1]
+        src = source_from_config(data)
         return calibration_inputs(config["kind"], n, int(config.get("seed", 0)) + seed_offset, spec, src)
     except Exception:  # noqa: BLE001 - any failure: the check falls back to random inputs
         return None
