@@ -226,7 +226,7 @@ def _init_feeds(config: dict[str, Any], spec: Any, n: int = 4,
     """
     try:
         data = dict(config.get("data") or {})
-        if data.get("type") == "folders" and len(data.get("folders") or []) > 1:
+        if data.get("type") == "folders":
             data["folders"] = data["folders"][:1]
         src = source_from_config(data)
         return calibration_inputs(config["kind"], n, int(config.get("seed", 0)) + seed_offset, spec, src)
