@@ -49,7 +49,7 @@ def to_frame(cloud, frame: str, camera=None, photo: Optional[str] = None):
             raise ValueError("no pose")
         R, t = np.asarray(cam.pose.R_world_from_camera), np.asarray(cam.pose.t_world_from_camera)
     xyz = (np.asarray(cloud.xyz, np.float64) @ R.T + t).astype(np.float32)
-    return PointCloud(xyz, cloud.rgb, cloud.tree_id)
+    return PointCloud(xyz, cloud.rgb, cloud.tree_id, cloud.trunk)
 
 
 def reconstruct(
@@ -163,7 +163,8 @@ def _print_summary(res, cloud, output: Path, frame: str) -> None:
     ids = np.unique(np.asarray(cloud.tree_id))
     n_trees = int((ids > 0).sum())
     con = Console(stderr=True, highlight=False, soft_wrap=True)
-    con.print(f"{output}: {len(cloud):,} points, {n_trees} tree{'s' if n_trees != 1 else ''} "
+    trunk = "" if cloud.trunk is None else f", {int(np.count_nonzero(cloud.trunk)):,} on trunks"
+    con.print(f"{output}: {len(cloud):,} points{trunk}, {n_trees} tree{'s' if n_trees != 1 else ''} "
               f"({frame} frame)")
     if res.error:
         con.print(f"measured tree: {res.error}", style="yellow")

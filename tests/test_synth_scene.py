@@ -166,7 +166,7 @@ def test_same_seed_gives_identical_files(tmp_path):
     c = generate_sample(5, 3, (160, 120))
     assert not np.array_equal(a["rgb"], c["rgb"])
     r = read_sample(tmp_path / "a", 2)
-    for k in ("depth", "semantic", "instance", "rope", "z1", "z2"):
+    for k in ("depth", "semantic", "instance", "rope", "z1", "z2", "stem"):
         assert np.array_equal(r[k], a[k])
     assert r["meta"]["trees"][0]["dbh_m"] == a["meta"]["trees"][0]["dbh_m"]
 
@@ -319,3 +319,36 @@ def test_foot_hidden_adds_taller_grass_and_a_bush_in_front_of_the_foot():
         assert [t.base.tolist() for t in hid.trees] == [t.base.tolist() for t in plain.trees]
         assert np.array_equal(hid.camera.t_wc, plain.camera.t_wc)
     assert 0 < n_bush < 12 and tall > 0
+
+
+def test_the_trunk_label_is_the_stems_and_the_rope_without_crowns(roped_sample):
+    # "stem": a tree's stem and the rope on it; never sky, ground or other vegetation, and
+    # not the crowns and limbs the "tree" label also holds
+    s = roped_sample
+    stem, tree = s["stem"], s["semantic"] == 3
+    assert stem.dtype == bool and stem.shape == tree.shape
+    assert not (stem & ~tree).any()
+    assert not (s["rope"] & ~stem).any()
+    assert 0.05 * tree.sum() < stem.sum() < 0.95 * tree.sum()
+    # at the rope's rows the roped stem's pixels between the rope's ends are trunk
+    k = s["meta"]["roped_tree"]
+    rows = np.nonzero(s["rope"].any(1))[0]
+    r = int(np.median(rows))
+    cols = np.nonzero(s["rope"][r])[0]
+    assert stem[r, cols].all() and (s["instance"][r, cols] == k).any()
+
+
+def test_a_sample_rendered_before_the_trunk_label_reads_without_it(tmp_path):
+    # data sets rendered before the "stem" array existed still read
+    import zipfile
+
+    a = generate_sample(5, 2, (160, 120))
+    write_sample(tmp_path, 2, a)
+    p = tmp_path / "000002.npz"
+    with zipfile.ZipFile(p) as z:
+        kept = {n: z.read(n) for n in z.namelist() if n != "stem.npy"}
+    with zipfile.ZipFile(p, "w") as z:
+        for n, b in kept.items():
+            z.writestr(n, b)
+    r = read_sample(tmp_path, 2)
+    assert "stem" not in r and np.array_equal(r["instance"], a["instance"])

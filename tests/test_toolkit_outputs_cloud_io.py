@@ -39,6 +39,26 @@ def test_las_round_trip_tree_id_rgb16(tmp_path):
     assert np.array_equal(d.rgb, c.rgb) and np.array_equal(d.tree_id, c.tree_id)
 
 
+def test_the_trunk_flag_round_trips_where_known_and_reads_none_where_not(tmp_path):
+    import laspy
+
+    c = _cloud()
+    c.trunk = np.random.default_rng(3).random(len(c)) < 0.3
+    for ext in ("ply", "las"):
+        d = read_cloud(write_cloud(tmp_path / f"t.{ext}", c))
+        assert d.trunk is not None and np.array_equal(d.trunk, c.trunk)
+        assert read_cloud(write_cloud(tmp_path / f"u.{ext}", _cloud())).trunk is None
+    assert b"property uchar trunk" in (tmp_path / "t.ply").read_bytes()[:500]
+    assert b"trunk" not in (tmp_path / "u.ply").read_bytes()[:500]
+    assert "trunk" in laspy.read(str(tmp_path / "t.las")).point_format.extra_dimension_names
+    # a cloud joined from parts with and without the flag does not claim it
+    both = PointCloud.concat([c, _cloud(10)])
+    assert both.trunk is None and len(both) == 510
+    assert PointCloud.concat([c, c]).trunk.sum() == 2 * c.trunk.sum()
+    with pytest.raises(ValueError, match="trunk"):
+        write_cloud(tmp_path / "bad.ply", PointCloud(c.xyz, c.rgb, c.tree_id, c.trunk[:5]))
+
+
 def test_empty_cloud_and_missing_colours(tmp_path):
     for ext in ("ply", "las"):
         write_cloud(tmp_path / f"e.{ext}", PointCloud.concat([]))

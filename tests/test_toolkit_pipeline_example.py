@@ -75,3 +75,19 @@ def test_idle_thread_spinning_comes_from_the_environment(monkeypatch):
     assert MeasureConfig().ort_spin is True
     monkeypatch.setenv("MONODBH_ORT_SPIN", "0")
     assert MeasureConfig().ort_spin is False
+
+
+def test_the_reconstructed_clouds_flag_trunk_points_and_the_measurement_is_unchanged(session):
+    """With a segmenter that has the trunk head, ``reconstruct_photo`` flags each point on a
+    trunk; asking the head for it leaves the measurement exactly as ``measure_photo`` gives it."""
+    cam = load_camera(EX / "cam.yaml")
+    if not session.segmenter.has_trunk:
+        pytest.skip("the shipped segmenter has no trunk head")
+    plain = pl.measure_photo(str(EX / "example.jpg"), cam, session=session)
+    res, cloud = pl.reconstruct_photo(str(EX / "example.jpg"), cam, session=session)
+    assert res.dbh_cm == plain.dbh_cm and res.distance_m == plain.distance_m and res.flags == plain.flags
+    assert cloud.trunk is not None and len(cloud.trunk) == len(cloud)
+    tree = cloud.tree_id == res.tree_id
+    # the roped tree's refined cloud is mostly its stem; the scene's trunk points are a minority
+    assert cloud.trunk[tree].mean() > 0.5
+    assert 0 < cloud.trunk[~tree].mean() < 0.5

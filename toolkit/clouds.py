@@ -33,7 +33,8 @@ def unproject_depth(depth: np.ndarray, K: np.ndarray, step: int = 1) -> np.ndarr
     return pts[0].numpy()
 
 
-def scene_cloud(img, depth, K, instance, tid, step: int = 4, max_depth_m: float = 60.0) -> PointCloud:
+def scene_cloud(img, depth, K, instance, tid, step: int = 4, max_depth_m: float = 60.0,
+                trunk=None) -> PointCloud:
     """The scene's coarse cloud from the (rescaled) depth map, without the measured tree ``tid``
     (it gets its refined cloud).
 
@@ -42,16 +43,19 @@ def scene_cloud(img, depth, K, instance, tid, step: int = 4, max_depth_m: float 
     img : (H, W, 3) uint8; depth : (H, W) float32 metres; K : (3, 3) intrinsics.
     instance : (H, W) tree instance ids; tid : the measured tree's id.
     step : pixel subsampling; max_depth_m : farther points are dropped.
+    trunk : (H, W) bool, optional
+        Trunk pixels (the segmenter's trunk head): the points' ``trunk`` flag.
     """
     pts = unproject_depth(depth, K, step)
     col = img[::step, ::step]
     ids = instance[::step, ::step].astype(np.int32)
     ok = (depth[::step, ::step] > 0) & (depth[::step, ::step] < max_depth_m)
     ok &= ids != tid
-    return PointCloud(pts[ok].astype(np.float32), col[ok].astype(np.uint8), ids[ok])
+    tr = None if trunk is None else np.asarray(trunk, bool)[::step, ::step][ok]
+    return PointCloud(pts[ok].astype(np.float32), col[ok].astype(np.uint8), ids[ok], tr)
 
 
-def tree_cloud(img, cam, z1, z2, tree_mask, tid) -> PointCloud:
+def tree_cloud(img, cam, z1, z2, tree_mask, tid, trunk=None) -> PointCloud:
     """The measured tree's front and back surface points (the tree network's metric z1, z2).
 
     Parameters
@@ -59,6 +63,8 @@ def tree_cloud(img, cam, z1, z2, tree_mask, tid) -> PointCloud:
     img : (H, W, 3) uint8; cam : the image's camera.
     z1, z2 : (H, W) float32 front / back surface depth (0 outside the tree's crop).
     tree_mask : (H, W) bool; tid : the tree's id.
+    trunk : (H, W) bool, optional
+        Trunk pixels (the segmenter's trunk head): the points' ``trunk`` flag.
     """
     ys, xs = np.nonzero(tree_mask & (z1 > 0))
     if len(xs) == 0:
@@ -68,5 +74,6 @@ def tree_cloud(img, cam, z1, z2, tree_mask, tid) -> PointCloud:
     b = np.c_[nxy * z2[ys, xs, None], z2[ys, xs]]
     col = img[ys, xs]
     back_col = (col * 0.6).astype(np.uint8)
+    tr = None if trunk is None else np.tile(np.asarray(trunk, bool)[ys, xs], 2)
     return PointCloud(np.concatenate([f, b]).astype(np.float32), np.concatenate([col, back_col]),
-                      np.full(2 * len(xs), tid, np.int32))
+                      np.full(2 * len(xs), tid, np.int32), tr)

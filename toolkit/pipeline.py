@@ -189,7 +189,7 @@ def _measure(path, rgb, camera, req: _Request, sess: Session, tm: dict) -> Measu
     t = time.perf_counter()
     frame = work_frame(rgb, camera, sess.config.work_long_side_px)
     tm["undistort"] = 1000 * (time.perf_counter() - t)
-    seg_job, depth_job = _start_networks(sess, frame)
+    seg_job, depth_job = _start_networks(sess, frame, trunk=req.want_cloud)
     try:
         return _measure_frame(path, rgb, camera, req, sess, tm, frame, seg_job, depth_job)
     finally:
@@ -197,13 +197,16 @@ def _measure(path, rgb, camera, req: _Request, sess: Session, tm: dict) -> Measu
         depth_job.wait()
 
 
-def _start_networks(sess: Session, frame: WorkFrame):
+def _start_networks(sess: Session, frame: WorkFrame, trunk: bool = False):
     """The segmenter, then the depth network (it needs the trees' union), on the background
-    thread: onnxruntime releases the GIL, and the band detector needs no mask."""
+    thread: onnxruntime releases the GIL, and the band detector needs no mask. ``trunk``: also
+    the segmenter's trunk probability (for the clouds; the other outputs are the same)."""
     img = frame.image
     h, w = frame.shape
     fx = float(frame.camera.K[0, 0])
-    seg_job = sess.background(lambda: sess.segmenter.predict(img, size=(w, h)))
+    trunk = trunk and getattr(sess.segmenter, "has_trunk", False)
+    kw = {"trunk": True} if trunk else {}
+    seg_job = sess.background(lambda: sess.segmenter.predict(img, size=(w, h), **kw))
     depth_job = sess.background(lambda: sess.depth.predict(img, seg_job.result().instance > 0, fx))
     return seg_job, depth_job
 
@@ -242,7 +245,9 @@ def _measure_frame(path, rgb, camera, req: _Request, sess: Session, tm: dict, fr
     _check_plausible(res, path, frame, sess.config)
     _check_row_against_marker(res, path, frame, choice, req, sess.config.row_marker_max_px)
     if req.want_cloud or req.want_debug:
-        _clouds(res, frame, at_tap(), stem, silhouette, depth_job, tm)
+        tp = getattr(seg, "trunk_prob", None)
+        trunk = None if tp is None else tp >= sess.segmenter.trunk_threshold
+        _clouds(res, frame, at_tap(), stem, silhouette, depth_job, tm, trunk)
     if req.want_debug:
         res.debug.update(image=frame.image, image_scale=frame.scale, rope_polyline=np.asarray(choice.rope.polyline),
                          tree_mask=stem.tree_mask, rope_thickness_px=ruler.thickness_px,
@@ -498,18 +503,20 @@ def _perception(frame: WorkFrame, choice: RopeChoice, stem: _Stem, ruler, ground
 
 
 def _clouds(res: MeasureResult, frame: WorkFrame, instance, stem: _Stem, silhouette: _TreeSilhouette,
-            depth_job, tm: dict) -> None:
-    """The scene cloud (the depth map rescaled to the measured distance) and the tree's cloud."""
+            depth_job, tm: dict, trunk=None) -> None:
+    """The scene cloud (the depth map rescaled to the measured distance) and the tree's cloud;
+    ``trunk`` (H, W) bool: the trunk pixels that flag their points."""
     from .clouds import scene_cloud, tree_cloud
     t = time.perf_counter()
     cands = res.debug.get("scale_candidates", {})
     lam_net = cands.get("network", (None,))[0]
     lam = float(np.linalg.norm(res.debug["axis_point"]))
     s = lam / lam_net if lam_net else 1.0
-    res.debug["scene_cloud"] = scene_cloud(frame.image, depth_job.result() * s, frame.camera.K, instance, stem.tid)
+    res.debug["scene_cloud"] = scene_cloud(frame.image, depth_job.result() * s, frame.camera.K, instance,
+                                           stem.tid, trunk=trunk)
     if silhouette.z1 is not None:
         res.debug["tree_cloud"] = tree_cloud(frame.image, frame.camera, silhouette.z1, silhouette.z2,
-                                             stem.tree_mask, stem.tid)
+                                             stem.tree_mask, stem.tid, trunk=trunk)
     tm["cloud"] = 1000 * (time.perf_counter() - t)
 
 

@@ -32,10 +32,14 @@ class PointCloud:
     rgb : (N, 3) uint8.
     tree_id : (N,) int32, 0 = not a tree (ground, sky-free background), k = tree instance k;
         the measured tree's refined cloud uses its own id.
+    trunk : (N,) bool or None
+        The point lies on a trunk (a tree's stem, not its limbs or foliage; the segmenter's
+        trunk head), None where that is not known (a segmenter without the head).
     """
     xyz: np.ndarray
     rgb: np.ndarray
     tree_id: np.ndarray
+    trunk: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.xyz)
@@ -45,9 +49,11 @@ class PointCloud:
         clouds = [c for c in clouds if c is not None and len(c)]
         if not clouds:
             return PointCloud(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint8), np.zeros(0, np.int32))
+        trunk = (np.concatenate([c.trunk for c in clouds]).astype(bool)
+                 if all(c.trunk is not None for c in clouds) else None)
         return PointCloud(np.concatenate([c.xyz for c in clouds]).astype(np.float32),
                           np.concatenate([c.rgb for c in clouds]).astype(np.uint8),
-                          np.concatenate([c.tree_id for c in clouds]).astype(np.int32))
+                          np.concatenate([c.tree_id for c in clouds]).astype(np.int32), trunk)
 
 
 @dataclass

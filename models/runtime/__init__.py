@@ -11,6 +11,8 @@ onnxruntime and ``monodbh.calib.errors`` (no torch).
 * ``stem_edge``: :mod:`.stem_edge`, :class:`StemEdgeFinder`, ``models/stem_edge_int8.onnx``
 * ``rope_verifier``: :mod:`.rope_verifier`, :class:`RopeVerifier`, ``models/rope_verifier_int8.onnx``
 * ``rope_finder``: :mod:`.rope_finder`, :class:`RopeFinder`, ``models/rope_finder_int8.onnx``
+* ``trunk_head``: :mod:`.trunk_head`, :class:`TrunkHead`, ``models/trunk_head_int8.onnx`` (reads
+  the segmenter's ``mask_features``; run by :meth:`Segmenter.predict` ``trunk=True`` only)
 
 :mod:`.common` holds the sessions, the manifest and the shared image helpers;
 :mod:`.networks` loads all of them at once (:func:`load_networks`) with the error model measured
@@ -25,7 +27,8 @@ from monodbh.models.runtime.segmenter import Segmenter, SegmentationResult
 from monodbh.models.runtime.stem_base import BaseEstimate, StemBaseFinder
 from monodbh.models.runtime.stem_edge import EdgeEstimate, StemEdgeFinder
 from monodbh.models.runtime.tree import TreePredictor
+from monodbh.models.runtime.trunk_head import TrunkHead
 
 __all__ = ["MANIFEST_PATH", "MODELS_DIR", "OnnxPredictor", "load_manifest", "Segmenter", "SegmentationResult",
            "DepthPredictor", "TreePredictor", "StemBaseFinder", "BaseEstimate", "StemEdgeFinder", "EdgeEstimate", "RopeVerifier", "RopeFinder",
-           "RopeFinderConfig", "ERROR_MODEL_KINDS", "Networks", "fresh_error_model", "load_networks"]
+           "RopeFinderConfig", "TrunkHead", "ERROR_MODEL_KINDS", "Networks", "fresh_error_model", "load_networks"]

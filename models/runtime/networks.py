@@ -177,9 +177,10 @@ def load_networks(models_dir: str | Path | None = None, *, threads: int = 2, dep
     stem_edge = _optional(models, mdir, "stem_edge")
     rope_verifier = _optional(models, mdir, "rope_verifier")
     rope_finder = _optional(models, mdir, "rope_finder")
+    trunk_head = _optional(models, mdir, "trunk_head")      # loaded only where a trunk map is asked for
     em = fresh_error_model(manifest, depth_flip_tta)
     return Networks(
-        segmenter=Segmenter(_required(models, mdir, "segmenter"), manifest=manifest, **opts),
+        segmenter=Segmenter(_required(models, mdir, "segmenter"), manifest=manifest, trunk_head=trunk_head, **opts),
         depth=DepthPredictor(_required(models, mdir, "depth"), flip_tta=depth_flip_tta, **opts),
         tree=TreePredictor(_required(models, mdir, "tree"), **opts),
         stem_base=None if stem_base is None else StemBaseFinder(stem_base, manifest=manifest,

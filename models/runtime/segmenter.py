@@ -15,9 +15,13 @@ from typing import Any
 import cv2
 import numpy as np
 
-from monodbh.models.runtime.common import OnnxPredictor
+from monodbh.models.runtime.common import MonodbhError, OnnxPredictor
 
-__all__ = ["SegmentationResult", "panoptic_merge", "Segmenter"]
+__all__ = ["FEATURES_OUTPUT", "SegmentationResult", "panoptic_merge", "trunk_probability", "Segmenter"]
+
+#: the segmenter's per-pixel embedding (``(1, D, S/4, S/4)``), an output of files that feed a
+#: trunk head; computed in every run, copied out only when asked for
+FEATURES_OUTPUT = "mask_features"
 
 
 @dataclass
@@ -35,6 +39,10 @@ class SegmentationResult:
         Score of tree ``k`` at index ``k - 1``: class probability x mean mask probability.
     classes : tuple of str
         Class names by semantic id.
+    trunk_prob : (H, W) float32 or None
+        Probability that the pixel is a trunk (a tree's stem, the rope on it included; not its
+        branches or foliage), from the segmenter's trunk head; None unless asked for
+        (:meth:`Segmenter.predict` ``trunk=True``) and shipped.
 
     ``tree_masks`` (N, H, W) bool and ``stuff_masks`` (name -> (H, W) bool) are derived on
     demand (a 12 MP photo with 40 trees would need 480 MB of masks).
@@ -45,6 +53,7 @@ class SegmentationResult:
     tree_scores: np.ndarray
     classes: tuple[str, ...] = field(default_factory=tuple)
     tree_class: int = 3
+    trunk_prob: np.ndarray | None = None
 
     @property
     def size(self) -> tuple[int, int]:
@@ -217,6 +226,22 @@ def _segment_table(keep: np.ndarray, labels: np.ndarray, scores: np.ndarray, own
     return lut, segments
 
 
+def trunk_probability(logits: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """Trunk logits ``(h, w)`` -> probability ``(H, W)`` float32 at ``size`` = (W, H), upsampled
+    bilinearly in logit space (as the masks are).
+
+    Examples
+    --------
+    >>> trunk_probability(np.zeros((4, 4), np.float32), (8, 6)).shape
+    (6, 8)
+    """
+    if logits.ndim != 2:
+        raise ValueError(f"expected trunk logits (h, w), got shape {logits.shape}")
+    up = cv2.resize(np.ascontiguousarray(logits, np.float32), (int(size[0]), int(size[1])),
+                    interpolation=cv2.INTER_LINEAR)
+    return _sigmoid(up)
+
+
 class Segmenter(OnnxPredictor):
     """Tree instance + stuff segmentation (Mask2Former-style network, kind ``"segmenter"``).
 
@@ -227,25 +252,77 @@ class Segmenter(OnnxPredictor):
     path : path, optional
         ONNX file; default the shipped ``models/segmenter_int8.onnx``.
     threads, manifest, spin : as :class:`~monodbh.models.runtime.common.OnnxPredictor`.
+    trunk_head : "shipped", path, TrunkHead or None
+        The trunk head for ``trunk=True`` (:meth:`predict`): ``"shipped"`` (the default) the
+        manifest's ``trunk_head`` where the segmenter is the shipped one; a file or a loaded
+        head; None: none. Loaded on first use.
     """
 
     kind = "segmenter"
 
     def __init__(self, path: str | os.PathLike | None = None, threads: int = 2,
-                 manifest: dict[str, Any] | None = None, *, spin: bool = False) -> None:
+                 manifest: dict[str, Any] | None = None, *, spin: bool = False,
+                 trunk_head: Any = "shipped") -> None:
         super().__init__("segmenter", path, threads, manifest, spin=spin)
+        self._head = None
+        self._head_source = None if (trunk_head == "shipped" and path is not None) else trunk_head
+        self._manifest, self._threads = manifest, threads
         self.classes = tuple(self.spec.get("classes") or ())
         self.tree_class = int(self.spec.get("extra", {}).get("tree_class", 3))
 
+    @property
+    def has_trunk(self) -> bool:
+        """Whether a trunk map can be given: the file exposes ``mask_features`` and a trunk head
+        is shipped with it (:class:`~monodbh.models.runtime.trunk_head.TrunkHead`)."""
+        return FEATURES_OUTPUT in self.output_names and self._trunk_head() is not None
+
+    @property
+    def trunk_threshold(self) -> float:
+        """Trunk probability from which a pixel counts as trunk (the trunk head's threshold)."""
+        head = self._trunk_head()
+        return head.threshold if head is not None else 0.5
+
+    def _trunk_head(self):
+        """The trunk head (loaded on first use), or None where none is shipped."""
+        if self._head is None and self._head_source is not None:
+            from monodbh.models.runtime.trunk_head import TrunkHead
+            src, self._head_source = self._head_source, None
+            if isinstance(src, TrunkHead):
+                self._head = src
+            elif src == "shipped":
+                from monodbh.models.runtime.common import load_manifest
+                man = self._manifest if self._manifest is not None else load_manifest()
+                if "trunk_head" in man.get("models", {}):
+                    self._head = TrunkHead(threads=self._threads, manifest=man)
+            else:
+                self._head = TrunkHead(src, threads=self._threads)
+        return self._head
+
     def raw(self, rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Network outputs for a photo: ``(class_logits (Q, C+1), mask_logits (Q, h, w))``."""
-        out = self.run({"image": self.preprocess(rgb, "image")})
-        return out["class_logits"][0], out["mask_logits"][0]
+        cls, msk = self.session.run(["class_logits", "mask_logits"],
+                                    {"image": self.preprocess(rgb, "image")})
+        return cls[0], msk[0]
+
+    def raw_with_trunk(self, rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`raw` and the trunk head's logits ``(h, w)`` from the same run of the network.
+
+        Raises
+        ------
+        MonodbhError
+            No trunk head for this segmenter.
+        """
+        if not self.has_trunk:
+            raise MonodbhError(f"{self.path}: this segmenter has no trunk head "
+                               f"(no {FEATURES_OUTPUT} output or no trunk_head network)")
+        cls, msk, feats = self.session.run(["class_logits", "mask_logits", FEATURES_OUTPUT],
+                                           {"image": self.preprocess(rgb, "image")})
+        return cls[0], msk[0], self._trunk_head().logits(feats)
 
     def predict(self, rgb: np.ndarray, size: tuple[int, int] | None = None,
                 score_threshold: float = 0.5, overlap_threshold: float = 0.8,
-                mask_threshold: float = 0.5, work_max_side: int | None = 640
-                ) -> SegmentationResult:
+                mask_threshold: float = 0.5, work_max_side: int | None = 640,
+                trunk: bool = False) -> SegmentationResult:
         """Segment a photo.
 
         Parameters
@@ -255,9 +332,15 @@ class Segmenter(OnnxPredictor):
             Output resolution; default the photo's.
         score_threshold, overlap_threshold, mask_threshold, work_max_side
             See :func:`panoptic_merge`.
+        trunk : bool
+            Also give the trunk probability (``trunk_prob``; the network must have the trunk
+            head, :attr:`has_trunk`).
         """
         size = size or (rgb.shape[1], rgb.shape[0])
-        cls, msk = self.raw(rgb)
+        if trunk:
+            cls, msk, tl = self.raw_with_trunk(rgb)
+        else:
+            cls, msk = self.raw(rgb)
         res = panoptic_merge(cls, msk, size, (self.tree_class,), score_threshold,
                              overlap_threshold, mask_threshold, work_max_side)
         pan = res["panoptic"]
@@ -271,4 +354,5 @@ class Segmenter(OnnxPredictor):
             lut_inst[s["id"]] = k + 1
         scores = np.array([s["score"] * s["mask_prob"] for s in trees], np.float32)
         return SegmentationResult(instance=lut_inst[pan], semantic=lut_sem[pan], tree_scores=scores,
-                                  classes=self.classes, tree_class=self.tree_class)
+                                  classes=self.classes, tree_class=self.tree_class,
+                                  trunk_prob=trunk_probability(tl, size) if trunk else None)

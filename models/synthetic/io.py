@@ -14,9 +14,11 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["write_sample", "read_sample", "list_samples", "GT_KEYS", "sample_done"]
+__all__ = ["write_sample", "read_sample", "list_samples", "GT_KEYS", "OPTIONAL_GT_KEYS", "sample_done"]
 
-GT_KEYS = ("depth", "semantic", "instance", "rope", "z1", "z2")
+GT_KEYS = ("depth", "semantic", "instance", "rope", "z1", "z2", "stem")
+#: arrays that data sets rendered before they existed do not have
+OPTIONAL_GT_KEYS = ("stem",)
 
 
 def _atomic_write(path: Path, data: bytes) -> None:
@@ -91,6 +93,7 @@ def read_sample(folder: str | os.PathLike, index: int, *, arrays: bool = True) -
     if arrays:
         with np.load(stem.with_suffix(".npz")) as z:
             for k in GT_KEYS:
-                out[k] = z[k]
+                if k in z.files or k not in OPTIONAL_GT_KEYS:
+                    out[k] = z[k]
     out["meta"] = json.loads(stem.with_suffix(".json").read_text())
     return out

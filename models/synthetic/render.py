@@ -140,6 +140,7 @@ class _Shader:
         self.obj_kind = np.array([o["kind"] for o in ms.objects])
         self.obj_rgb = np.array([o.get("rgb", (0.5, 0.5, 0.5)) for o in ms.objects], np.float64)
         self.obj_is_rope = np.array([o["kind"] == "rope" for o in ms.objects])
+        self.obj_is_stem = np.array([o["kind"] in ("stem", "rope", "tape") for o in ms.objects])
         self.obj_sem = np.array([o["semantic"] for o in ms.objects], np.uint8)
         self.obj_inst = np.array([o["instance"] for o in ms.objects], np.uint16)
         self.obj_tree = np.array([o["tree"] for o in ms.objects], np.int64)
@@ -371,7 +372,8 @@ def render_scene(scene: Scene, rng: np.random.Generator, *, aa: bool = True, sha
     Returns
     -------
     dict with ``rgb`` (H, W, 3) uint8 (JPEG-decoded), ``jpeg`` bytes, ``depth``, ``semantic``,
-    ``instance``, ``rope``, ``z1``, ``z2`` (all (H, W)), ``stats``.
+    ``instance``, ``rope``, ``stem`` (trunk pixels: stems and the rope or tape on them, not
+    branches or foliage), ``z1``, ``z2`` (all (H, W)), ``stats``.
     """
     if look not in LOOKS:
         raise ValueError(f"unknown look {look!r} (expected one of {', '.join(LOOKS)})")
@@ -508,6 +510,8 @@ def render_scene(scene: Scene, rng: np.random.Generator, *, aa: bool = True, sha
                 depth[sel] = tt * dcs.reshape(-1, k, 3)[rows, first, 2]
     lap("aa")
     rope = rope_cov >= 0.2
+    # the trunks (a tree's stem, with the rope and tape on it), without branches and foliage
+    stem = ((obj >= 0) & sh.obj_is_stem[np.maximum(obj, 0)]) | rope
 
     # ---- z1 / z2 for tree pixels: nearest = visible hit; farthest = reversed ray, same tree only
     z1 = np.zeros(H * W)
@@ -567,7 +571,7 @@ def render_scene(scene: Scene, rng: np.random.Generator, *, aa: bool = True, sha
         rgb=rgb, jpeg=buf.tobytes(),
         depth=depth.reshape(H, W).astype(np.float32),
         semantic=sem.reshape(H, W), instance=inst.reshape(H, W), rope=rope.reshape(H, W),
-        z1=z1.reshape(H, W).astype(np.float32), z2=z2.reshape(H, W).astype(np.float32),
+        stem=stem.reshape(H, W), z1=z1.reshape(H, W).astype(np.float32), z2=z2.reshape(H, W).astype(np.float32),
         stats=dict(triangles=int(len(F)), aa_pixels=int(n_aa), jpeg_quality=q),
         timings_ms=tm,
     )

@@ -23,7 +23,10 @@ area over its rows):
 and each trunk's IoU, to check the outlines and see the failures. ``--crop F`` segments, for each
 outlined trunk, a square crop of side ``F`` x the photo's long side centred on the trunk instead
 of the whole photo (:func:`score_trunk_in_crop`): how much a zoomed second pass would find.
-``--tiles F`` segments the whole photo as overlapping square tiles of side ``F`` x its long side
+``--trunk`` scores the segmenter's trunk head instead of its "tree" instances: the trunk pixels
+are those whose trunk probability reaches the segmenter's ``trunk_threshold``, the instances
+their connected parts (8-neighbour), so a trunk is scored against the stem the head found, not
+against a whole tree with its crown. ``--tiles F`` segments the whole photo as overlapping square tiles of side ``F`` x its long side
 (half a tile apart, :func:`segment_tiled`), without knowing where the trunks are: a pixel is
 "tree" where at least half the tiles that hold it say so, and the instances are the connected
 parts of that mask (so touching trunks and crowns merge, which the IoU counts).
@@ -31,7 +34,7 @@ parts of that mask (so touching trunks and crowns merge, which the IoU counts).
 Usage::
 
     python -m monodbh.toolkit.evaluation.real_trunk_bench ../shared/data/real_trees [--draw runs/real_trunks] [--json F]
-        [--model OTHER_SEGMENTER.onnx] [--crop 0.4 | --tiles 0.3]
+        [--model OTHER_SEGMENTER.onnx] [--crop 0.4 | --tiles 0.3 | --trunk]
 
 Imported by nothing (a command); imports the segmenter's runtime and ``monodbh.calib``.
 """
@@ -46,7 +49,7 @@ from typing import Optional, Sequence
 import numpy as np
 
 __all__ = ["OUTLINES", "MIN_WIDTH_PX", "FOUND_IOU", "load_outlines", "rasterize", "score_trunk",
-           "score_photo", "crop_around", "score_trunk_in_crop", "tile_origins", "segment_tiled",
+           "trunk_instances", "score_photo", "crop_around", "score_trunk_in_crop", "tile_origins", "segment_tiled",
            "summarise", "main"]
 
 #: the outlines shipped with this module
@@ -138,17 +141,40 @@ def score_trunk(trunk: np.ndarray, instance: np.ndarray, tree_pixels: np.ndarray
             "pixel_recall": float(np.count_nonzero(trunk & tree_pixels)) / area, "missed_as": missed}
 
 
+def trunk_instances(trunk_prob: np.ndarray, threshold: float) -> tuple[np.ndarray, np.ndarray]:
+    """Trunk mask ``(H, W)`` bool (probability >= ``threshold``) and its connected parts
+    ``(H, W)`` int32 (8-neighbour, 0 = none), the trunk head's instances.
+
+    Examples
+    --------
+    >>> p = np.zeros((4, 6)); p[:, 1] = p[:, 4] = 0.9
+    >>> mask, inst = trunk_instances(p, 0.5)
+    >>> int(mask.sum()), int(inst.max())
+    (8, 2)
+    """
+    import cv2
+
+    mask = np.asarray(trunk_prob) >= threshold
+    _, inst = cv2.connectedComponents(mask.astype(np.uint8), connectivity=8)
+    return mask, inst.astype(np.int32)
+
+
 def score_photo(rgb: np.ndarray, entry: dict, segmenter,
-                tiles: Optional[float] = None) -> tuple[list[dict], object]:
+                tiles: Optional[float] = None, trunk: bool = False) -> tuple[list[dict], object]:
     """Segment ``rgb`` (H, W, 3) (whole, or with ``tiles`` by :func:`segment_tiled`) and score
-    each outlined trunk of ``entry`` (all widths; :func:`summarise` keeps the wide ones).
+    each outlined trunk of ``entry`` (all widths; :func:`summarise` keeps the wide ones); with
+    ``trunk``, against the trunk head's instances (:func:`trunk_instances`).
     Returns ``(scores, segmentation)``."""
     H, W = rgb.shape[:2]
-    seg = segment_tiled(rgb, segmenter, tiles) if tiles else segmenter.predict(rgb, size=(W, H))
-    tree = seg.semantic == seg.tree_class
+    if trunk:
+        seg = segmenter.predict(rgb, size=(W, H), trunk=True)
+        tree, inst = trunk_instances(seg.trunk_prob, segmenter.trunk_threshold)
+    else:
+        seg = segment_tiled(rgb, segmenter, tiles) if tiles else segmenter.predict(rgb, size=(W, H))
+        tree, inst = seg.semantic == seg.tree_class, seg.instance
     out = []
     for i, tr in enumerate(entry["trunks"]):
-        s = score_trunk(rasterize(tr["polygon"], (W, H)), seg.instance, tree, seg.semantic, seg.classes)
+        s = score_trunk(rasterize(tr["polygon"], (W, H)), inst, tree, seg.semantic, seg.classes)
         out.append({"trunk": i, "note": tr.get("note", ""), **s})
     return out, seg
 
@@ -264,11 +290,12 @@ def summarise(rows: Sequence[dict], min_width_px: float = MIN_WIDTH_PX) -> dict:
             "missed_as": {k: round(v, 4) for k, v in sorted(missed.items(), key=lambda kv: -kv[1])}}
 
 
-def _draw(rgb: np.ndarray, entry: dict, scores: Sequence[dict], seg, path: Path) -> None:
+def _draw(rgb: np.ndarray, entry: dict, scores: Sequence[dict], seg, path: Path,
+          tree: Optional[np.ndarray] = None) -> None:
     import cv2
 
     img = rgb.astype(np.float32).copy()
-    tree = seg.semantic == seg.tree_class
+    tree = seg.semantic == seg.tree_class if tree is None else tree
     img[tree] = 0.55 * img[tree] + 0.45 * np.array([40, 110, 255], np.float32)
     img = np.ascontiguousarray(img.clip(0, 255).astype(np.uint8))
     lw = max(1, round(max(img.shape[:2]) / 600))
@@ -284,10 +311,11 @@ def _draw(rgb: np.ndarray, entry: dict, scores: Sequence[dict], seg, path: Path)
 
 
 def run(folder: Path, outlines: dict, draw: Optional[Path] = None, segmenter=None,
-        crop: Optional[float] = None, tiles: Optional[float] = None) -> list[dict]:
+        crop: Optional[float] = None, tiles: Optional[float] = None, trunk: bool = False) -> list[dict]:
     """Score every outlined photo of ``folder``; a row per trunk (``photo`` added); with
     ``crop``, each trunk in its own crop (:func:`score_trunk_in_crop`, no drawing); with
-    ``tiles``, the photo segmented in tiles (:func:`segment_tiled`)."""
+    ``tiles``, the photo segmented in tiles (:func:`segment_tiled`); with ``trunk``, the trunk
+    head's trunks (:func:`trunk_instances`; drawn in blue instead of the "tree" pixels)."""
     from monodbh.calib import load_photo
     from monodbh.models.runtime.segmenter import Segmenter
 
@@ -310,10 +338,11 @@ def run(folder: Path, outlines: dict, draw: Optional[Path] = None, segmenter=Non
                       **score_trunk_in_crop(rgb, tr["polygon"], seg_net, crop)}
                      for i, tr in enumerate(entry["trunks"])]
             continue
-        scores, seg = score_photo(rgb, entry, seg_net, tiles)
+        scores, seg = score_photo(rgb, entry, seg_net, tiles, trunk)
         rows += [{"photo": name, **s} for s in scores]
         if draw is not None:
-            _draw(rgb, entry, scores, seg, Path(draw) / f"{p.stem}_outlines.png")
+            mask = trunk_instances(seg.trunk_prob, seg_net.trunk_threshold)[0] if trunk else None
+            _draw(rgb, entry, scores, seg, Path(draw) / f"{p.stem}_outlines.png", mask)
     return rows
 
 
@@ -329,9 +358,11 @@ def main(argv=None) -> int:
                     help="segment a square crop of side F x the photo's long side around each trunk")
     ap.add_argument("--tiles", type=float, metavar="F",
                     help="segment the whole photo in overlapping square tiles of side F x its long side")
+    ap.add_argument("--trunk", action="store_true",
+                    help="score the segmenter's trunk head (its trunks) instead of its tree instances")
     a = ap.parse_args(argv)
-    if a.crop is not None and a.tiles is not None:
-        ap.error("--crop and --tiles exclude each other")
+    if sum(x is not None and x is not False for x in (a.crop, a.tiles, a.trunk or None)) > 1:
+        ap.error("--crop, --tiles and --trunk exclude each other")
     for flag, v in (("--crop", a.crop), ("--tiles", a.tiles)):
         if v is not None and not 0 < v <= 1:
             ap.error(f"{flag} must be in (0, 1], got {v}")
@@ -339,7 +370,13 @@ def main(argv=None) -> int:
     if a.model is not None:
         from monodbh.models.runtime.segmenter import Segmenter
         seg = Segmenter(a.model)
-    rows = run(a.folder, load_outlines(a.outlines), a.draw, segmenter=seg, crop=a.crop, tiles=a.tiles)
+    if a.trunk:
+        from monodbh.models.runtime.segmenter import Segmenter
+        seg = seg or Segmenter()
+        if not seg.has_trunk:
+            ap.error(f"{seg.path}: this segmenter has no trunk head")
+    rows = run(a.folder, load_outlines(a.outlines), a.draw, segmenter=seg, crop=a.crop, tiles=a.tiles,
+               trunk=a.trunk)
     print("| photo | trunks >= 20 px | mean IoU | found (IoU >= 0.5) | local IoU | found by it | pixel recall |\n"
           "|---|---|---|---|---|---|---|")
     for name in sorted({r["photo"] for r in rows}):

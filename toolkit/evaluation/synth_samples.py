@@ -68,13 +68,14 @@ def read_ground_truth(photo: str | os.PathLike) -> dict:
     OSError, ValueError, KeyError
         A missing or unreadable file or array.
     """
-    from monodbh.models.synthetic.io import GT_KEYS
+    from monodbh.models.synthetic.io import GT_KEYS, OPTIONAL_GT_KEYS
 
     stem = Path(photo).with_suffix("")
     out: dict = {}
     with np.load(stem.with_suffix(".npz")) as z:
         for k in GT_KEYS:
-            out[k] = z[k]
+            if k in z.files or k not in OPTIONAL_GT_KEYS:
+                out[k] = z[k]
     out["meta"] = json.loads(stem.with_suffix(".json").read_text())
     return out
 

@@ -4,12 +4,14 @@ Formats (chosen from the file extension, case-insensitive)
 -----------------------------------------------------------
 ``.ply``
     ``binary_little_endian`` PLY with one ``vertex`` element: ``x, y, z`` float32 (metres),
-    ``red, green, blue`` uchar, ``tree_id`` int32.
+    ``red, green, blue`` uchar, ``tree_id`` int32, and ``trunk`` uchar (1 on a trunk: a tree's
+    stem, not its limbs or foliage) where the cloud knows it.
 ``.las`` / ``.laz``
     LAS 1.4, point format 7 (XYZ + RGB + GPS time), scale 0.001 m, offsets the floor of the
     minimum coordinate of each axis (whole metres); RGB scaled to 16 bit (``v * 257``);
     ``classification`` 5 (high vegetation) where ``tree_id > 0`` else 1 (unclassified); an
-    extra-bytes dimension ``tree_id`` (int32). ``.laz`` needs a laspy LAZ backend
+    extra-bytes dimension ``tree_id`` (int32), and ``trunk`` (uint8, as in PLY) where the
+    cloud knows it. ``.laz`` needs a laspy LAZ backend
     (``pip install lazrs``).
 
 Both writers are atomic: the file is written under a temporary name in the same folder and
@@ -60,6 +62,15 @@ def cloud_format(path: PathLike) -> str:
     return ext[1:]
 
 
+def _check_trunk(cloud: PointCloud, n: int) -> np.ndarray | None:
+    if cloud.trunk is None:
+        return None
+    tr = np.asarray(cloud.trunk).reshape(-1)
+    if len(tr) != n:
+        raise ValueError(f"cloud arrays disagree: xyz {n}, trunk {len(tr)}")
+    return tr.astype(bool).astype(np.uint8)
+
+
 def _check_cloud(cloud: PointCloud) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     xyz = np.asarray(cloud.xyz, dtype=np.float32).reshape(-1, 3)
     n = len(xyz)
@@ -74,19 +85,24 @@ def _check_cloud(cloud: PointCloud) -> tuple[np.ndarray, np.ndarray, np.ndarray]
     return xyz, np.clip(rgb, 0, 255).astype(np.uint8), tid.astype(np.int32)
 
 
-def _write_ply(tmp: str, xyz: np.ndarray, rgb: np.ndarray, tid: np.ndarray) -> None:
+def _write_ply(tmp: str, xyz: np.ndarray, rgb: np.ndarray, tid: np.ndarray, trunk: np.ndarray | None) -> None:
     from plyfile import PlyData, PlyElement
 
-    v = np.empty(len(xyz), dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("red", "u1"),
-                                  ("green", "u1"), ("blue", "u1"), ("tree_id", "<i4")])
+    fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("red", "u1"), ("green", "u1"), ("blue", "u1"),
+              ("tree_id", "<i4")] + ([("trunk", "u1")] if trunk is not None else [])
+    v = np.empty(len(xyz), dtype=fields)
     v["x"], v["y"], v["z"] = xyz[:, 0], xyz[:, 1], xyz[:, 2]
     v["red"], v["green"], v["blue"] = rgb[:, 0], rgb[:, 1], rgb[:, 2]
     v["tree_id"] = tid
-    PlyData([PlyElement.describe(v, "vertex")], text=False, byte_order="<",
-            comments=["monodbh point cloud: metres; tree_id 0 = not a tree"]).write(tmp)
+    comment = "monodbh point cloud: metres; tree_id 0 = not a tree"
+    if trunk is not None:
+        v["trunk"] = trunk
+        comment += "; trunk 1 = on a trunk"
+    PlyData([PlyElement.describe(v, "vertex")], text=False, byte_order="<", comments=[comment]).write(tmp)
 
 
-def _write_las(tmp: str, xyz: np.ndarray, rgb: np.ndarray, tid: np.ndarray, compress: bool) -> None:
+def _write_las(tmp: str, xyz: np.ndarray, rgb: np.ndarray, tid: np.ndarray, compress: bool,
+               trunk: np.ndarray | None = None) -> None:
     import laspy
 
     if compress and not laspy.LazBackend.detect_available():
@@ -95,6 +111,9 @@ def _write_las(tmp: str, xyz: np.ndarray, rgb: np.ndarray, tid: np.ndarray, comp
     header = laspy.LasHeader(point_format=7, version="1.4")
     header.add_extra_dim(laspy.ExtraBytesParams(name="tree_id", type=np.int32,
                                                 description="tree instance, 0 = none"))
+    if trunk is not None:
+        header.add_extra_dim(laspy.ExtraBytesParams(name="trunk", type=np.uint8,
+                                                    description="1 = on a trunk"))
     header.scales = np.full(3, LAS_SCALE_M)
     header.offsets = np.floor(xyz.min(axis=0)).astype(np.float64) if len(xyz) else np.zeros(3)
     header.generating_software = "monodbh"
@@ -104,6 +123,8 @@ def _write_las(tmp: str, xyz: np.ndarray, rgb: np.ndarray, tid: np.ndarray, comp
     las.red, las.green, las.blue = rgb16[:, 0], rgb16[:, 1], rgb16[:, 2]
     las.classification = np.where(tid > 0, 5, 1).astype(np.uint8)
     las.tree_id = tid
+    if trunk is not None:
+        las.trunk = trunk
     with open(tmp, "wb") as f:
         las.write(f, do_compress=compress)
 
@@ -116,7 +137,8 @@ def write_cloud(path: PathLike, cloud: PointCloud) -> Path:
     path : str or os.PathLike
         Target file; its folder is created.
     cloud : PointCloud
-        ``xyz`` (N, 3) metres, ``rgb`` (N, 3) uint8, ``tree_id`` (N,) int.
+        ``xyz`` (N, 3) metres, ``rgb`` (N, 3) uint8, ``tree_id`` (N,) int, ``trunk`` (N,) bool
+        or None.
 
     Returns
     -------
@@ -133,13 +155,14 @@ def write_cloud(path: PathLike, cloud: PointCloud) -> Path:
     p = Path(path)
     fmt = cloud_format(p)
     xyz, rgb, tid = _check_cloud(cloud)
+    trunk = _check_trunk(cloud, len(xyz))
     try:
         if fmt == "ply":
             with atomic_path(p) as tmp:
-                _write_ply(tmp, xyz, rgb, tid)
+                _write_ply(tmp, xyz, rgb, tid, trunk)
         else:
             with atomic_path(p) as tmp:
-                _write_las(tmp, xyz, rgb, tid, fmt == "laz")
+                _write_las(tmp, xyz, rgb, tid, fmt == "laz", trunk)
     except CloudFileError as exc:
         raise CloudFileError(f"{p}: {exc}") from None
     except OSError as exc:
@@ -170,7 +193,8 @@ def _read_ply(p: Path) -> PointCloud:
            else np.zeros((len(xyz), 3))).astype(np.uint8)
     tid = _field(names, v, "tree_id", "scalar_tree_id")
     tid = np.zeros(len(xyz), np.int32) if tid is None else np.rint(tid).astype(np.int32)
-    return PointCloud(xyz, rgb, tid)
+    tr = _field(names, v, "trunk", "scalar_trunk")
+    return PointCloud(xyz, rgb, tid, None if tr is None else np.rint(tr).astype(np.int64) > 0)
 
 
 def _read_las(p: Path) -> PointCloud:
@@ -185,13 +209,14 @@ def _read_las(p: Path) -> PointCloud:
     else:
         rgb = np.zeros((len(xyz), 3), np.uint8)
     tid = np.asarray(las.tree_id).astype(np.int32) if "tree_id" in dims else np.zeros(len(xyz), np.int32)
-    return PointCloud(xyz, rgb, tid)
+    tr = np.asarray(las.trunk) > 0 if "trunk" in dims else None
+    return PointCloud(xyz, rgb, tid, tr)
 
 
 def read_cloud(path: PathLike) -> PointCloud:
     """Read a PLY/LAS/LAZ file written by :func:`write_cloud` (or a compatible tool).
 
-    Missing colours read as black and a missing ``tree_id`` as 0.
+    Missing colours read as black, a missing ``tree_id`` as 0 and a missing ``trunk`` as None.
 
     Raises
     ------
