@@ -152,3 +152,26 @@ def test_ship_attaches_the_head_and_restamps_the_error_model_only_for_its_segmen
     again = th.ship(run, [val], models, n_calib=1)
     assert not again["error_model_restamped"]
     assert hashlib.sha256((models / "segmenter_int8.onnx").read_bytes()).hexdigest() == new
+
+
+def test_the_shipped_head_is_scored_on_folders_with_the_stem_label_only(tmp_path):
+    import zipfile
+
+    pytest.importorskip("embreex")
+    from monodbh.models.synthetic import generate_sample
+    from monodbh.models.synthetic.io import write_sample
+    s = generate_sample(11, 0, (384, 288))
+    write_sample(tmp_path / "new", 0, s)
+    r = th.score_shipped(tmp_path / "new")
+    assert r["photos"] == 1 and 0.3 < r["iou"] <= 1 and r["threshold"] == th.THRESHOLD
+    old = tmp_path / "old"
+    write_sample(old, 0, s)
+    p = old / "000000.npz"
+    with zipfile.ZipFile(p) as z:
+        kept = {n: z.read(n) for n in z.namelist() if n != "stem.npy"}
+    with zipfile.ZipFile(p, "w") as z:
+        for n, b in kept.items():
+            z.writestr(n, b)
+    assert th.score_shipped(old) == {}
+    with pytest.raises(ValueError, match="no samples with a 'stem' label"):
+        th._eval_cmd([old], None)

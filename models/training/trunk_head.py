@@ -28,7 +28,6 @@ import argparse
 import hashlib
 import json
 import os
-import shutil
 import time
 import warnings
 from pathlib import Path
@@ -37,7 +36,7 @@ from typing import Any, Sequence
 import numpy as np
 
 __all__ = ["FEATURE_TENSOR", "THRESHOLD", "feature_tensor_name", "FeatureExtractor", "load_features",
-           "train", "evaluate", "expose_features", "export_head", "evaluate_onnx", "ship", "main"]
+           "train", "evaluate", "expose_features", "export_head", "evaluate_onnx", "ship", "score_shipped", "main"]
 
 #: the segmenter's mask-feature tensor (fp32 export; the int8 file reads it after its
 #: DequantizeLinear)
@@ -439,31 +438,45 @@ def main(argv: Sequence[str] | None = None) -> int:
     return 0
 
 
+def score_shipped(folder: str | os.PathLike, n: int | None = None,
+                  models_dir: str | os.PathLike | None = None) -> dict[str, Any]:
+    """The shipped trunk head (as the runtime runs it: int8, on the segmenter's ``mask_features``)
+    on the first ``n`` samples of a ``dbh synth`` folder: :func:`evaluate`'s scores, or ``{}``
+    where the folder was rendered without the ``stem`` label."""
+    from monodbh.models.runtime.common import MODELS_DIR, load_manifest
+    from monodbh.models.runtime.segmenter import Segmenter, trunk_probability
+    from monodbh.models.synthetic.io import list_samples, read_sample
+    mdir = Path(models_dir or MODELS_DIR)
+    models = load_manifest(mdir / "manifest.json")["models"]
+    seg = Segmenter(mdir / models["segmenter"]["file"], trunk_head=mdir / models["trunk_head"]["file"])
+    idx = list_samples(folder)[:n]
+    if not idx or "stem" not in read_sample(folder, idx[0]):
+        return {}
+    inter = union = pred = true = 0
+    ious = []
+    for i in idx:
+        s = read_sample(folder, i)
+        _, _, tl = seg.raw_with_trunk(s["rgb"])
+        P = trunk_probability(tl, (LABEL_SIDE, LABEL_SIDE)) >= seg.trunk_threshold
+        G = _stem_label(s["stem"]) >= 128
+        n_i, n_u = int((P & G).sum()), int((P | G).sum())
+        inter += n_i; union += n_u; pred += int(P.sum()); true += int(G.sum())
+        ious.append(n_i / max(n_u, 1))
+    return {"photos": len(ious), "iou": inter / max(union, 1), "iou_per_photo": float(np.mean(ious)),
+            "recall": inter / max(true, 1), "precision": inter / max(pred, 1), "threshold": seg.trunk_threshold}
+
+
 def _eval_cmd(folders: Sequence[Path], run: Path | None) -> dict[str, Any]:
     """Scores of a run's head (on the shipped segmenter's features) or of the shipped head."""
-    from monodbh.models.synthetic.io import list_samples, read_sample
     if run is not None:
         ext = FeatureExtractor()
         head = _load_head(run)
         return {str(f): evaluate(head, *load_features(f, ext, run / "features")) for f in folders}
-    from monodbh.models.runtime.segmenter import Segmenter, trunk_probability
-    seg = Segmenter()
     out = {}
     for f in folders:
-        inter = union = pred = true = 0
-        ious = []
-        for i in list_samples(f):
-            s = read_sample(f, i)
-            if "stem" not in s:
-                raise ValueError(f"{f}: sample {i:06d} has no 'stem' label; render it again with dbh synth")
-            _, _, tl = seg.raw_with_trunk(s["rgb"])                  # the int8 head, as run
-            P = trunk_probability(tl, (LABEL_SIDE, LABEL_SIDE)) >= THRESHOLD
-            G = _stem_label(s["stem"]) >= 128
-            n_i, n_u = int((P & G).sum()), int((P | G).sum())
-            inter += n_i; union += n_u; pred += int(P.sum()); true += int(G.sum())
-            ious.append(n_i / max(n_u, 1))
-        out[str(f)] = {"photos": len(ious), "iou": inter / max(union, 1), "iou_per_photo": float(np.mean(ious)),
-                       "recall": inter / max(true, 1), "precision": inter / max(pred, 1), "threshold": THRESHOLD}
+        out[str(f)] = score_shipped(f)
+        if not out[str(f)]:
+            raise ValueError(f"{f}: no samples with a 'stem' label; render it again with dbh synth")
     return out
 
 

@@ -12,7 +12,10 @@ int8 models are scored by their training's evaluation hooks
 - stem_edge: ``score`` (patches whose width is within the training's tolerance) and
   ``width_median_pct``, on the exact patches of the folder's last 60 scenes;
 - rope_finder: ``recall`` and ``tile_auc`` on a bank cut from the folder
-  (:func:`monodbh.models.training.rope_finder_bank.cut_folder`, to a temporary file).
+  (:func:`monodbh.models.training.rope_finder_bank.cut_folder`, to a temporary file);
+- trunk_head (the segmenter's): ``iou`` of the trunk pixels, on folders rendered with the
+  ``stem`` label (:func:`monodbh.models.training.trunk_head.score_shipped`; ``-`` on others, e.g.
+  ``data/trunk_val data/trunk_val_h``).
 
 The last column gives each figure of the last folder over the first's (errors: how many times
 larger; scores: how many times smaller), the ratio issue 26 bounds by 1.25.
@@ -40,7 +43,8 @@ FIGURES = (("segmenter", "roped_iou", False), ("segmenter", "roped_detected", Fa
            ("tree", "g_acc", False), ("tree", "g_within10", False),
            ("stem_base", "recall", False), ("stem_base", "precision", False),
            ("stem_edge", "score", False), ("stem_edge", "width_median_pct", True),
-           ("rope_finder", "recall", False), ("rope_finder", "tile_auc", False))
+           ("rope_finder", "recall", False), ("rope_finder", "tile_auc", False),
+           ("trunk_head", "iou", False))
 
 
 def _look(folder: Path) -> str:
@@ -50,7 +54,8 @@ def _look(folder: Path) -> str:
 
 
 def score_folder(folder: str | Path, n: int = 120, seed: int = 0, models_dir: Optional[Path] = None,
-                 kinds: Sequence[str] = ("segmenter", "depth", "tree", "stem_base", "stem_edge", "rope_finder")) -> dict:
+                 kinds: Sequence[str] = ("segmenter", "depth", "tree", "stem_base", "stem_edge", "rope_finder",
+                                         "trunk_head")) -> dict:
     """Each shipped network's evaluation metrics on the samples of ``folder``.
 
     Parameters
@@ -76,6 +81,10 @@ def score_folder(folder: str | Path, n: int = 120, seed: int = 0, models_dir: Op
     out: dict = {"look": _look(folder)}
     src = make_source(folder, allow_heldout=True)
     for kind in kinds:
+        if kind == "trunk_head":
+            from monodbh.models.training.trunk_head import score_shipped
+            out[kind] = score_shipped(folder, n, mdir)
+            continue
         path = mdir / entries[kind]["file"]
         spec = shipped_spec(get_spec(kind), path)          # the file's own conventions
         sess = make_session(path, threads=2)
@@ -111,7 +120,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--models-dir", type=Path, default=None)
     ap.add_argument("--json", type=Path, default=None)
-    ap.add_argument("--kinds", default="segmenter,depth,tree,stem_base,stem_edge,rope_finder",
+    ap.add_argument("--kinds", default="segmenter,depth,tree,stem_base,stem_edge,rope_finder,trunk_head",
                     help="comma-separated networks to score")
     a = ap.parse_args(argv)
     kinds = [k for k in a.kinds.split(",") if k]
