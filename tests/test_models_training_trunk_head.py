@@ -64,6 +64,19 @@ def test_exposed_features_leave_the_other_outputs_bit_identical_and_feed_the_int
         old.predict(photos[0], trunk=True)
     with pytest.raises(ValueError, match="expected mask features"):
         new._trunk_head().logits(np.zeros((1, 32, 8, 8), np.float32))
+    # the trunk map: one pass equals predict's; in tiles, the mean of the tiles' maps
+    whole = new.trunk_map(photos[0], tile_frac=None)
+    np.testing.assert_array_equal(whole, new.predict(photos[0], trunk=True).trunk_prob)
+    tiled = new.trunk_map(photos[0], size=(40, 24))
+    assert tiled.shape == (24, 40) and 0 <= tiled.min() <= tiled.max() <= 1
+    # 40 px tiles of the 80 x 48 photo start at x 0, 20, 40 and y 0, 8: the corner x < 20, y < 8
+    # lies in the first tile only
+    first = trunk_probability(new.raw_with_trunk(np.ascontiguousarray(photos[0][:40, :40]))[2], (40, 40))
+    full = new.trunk_map(photos[0], tile_frac=0.5)
+    np.testing.assert_allclose(full[:8, :20], first[:8, :20], atol=1e-6)
+    assert not np.allclose(full[20:30, 20:30], first[20:30, 20:30], atol=1e-6)
+    with pytest.raises(ValueError, match="tile fraction"):
+        new.trunk_map(photos[0], tile_frac=1.5)
 
 
 def test_trunk_probability_upsamples_in_logit_space():

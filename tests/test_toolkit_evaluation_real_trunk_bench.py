@@ -184,7 +184,7 @@ def test_trunk_mode_needs_a_segmenter_with_the_trunk_head(tmp_path, capsys):
         rb.main([str(tmp_path), "--trunk", "--model", str(p)])
     assert e.value.code == 2 and "has no trunk head" in capsys.readouterr().err
     with pytest.raises(SystemExit):
-        rb.main([str(tmp_path), "--trunk", "--tiles", "0.3"])
+        rb.main([str(tmp_path), "--trunk", "--crop", "0.3"])
 
 
 def test_trunk_instances_are_the_connected_parts_of_the_trunk_mask():

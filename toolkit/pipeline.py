@@ -189,7 +189,7 @@ def _measure(path, rgb, camera, req: _Request, sess: Session, tm: dict) -> Measu
     t = time.perf_counter()
     frame = work_frame(rgb, camera, sess.config.work_long_side_px)
     tm["undistort"] = 1000 * (time.perf_counter() - t)
-    seg_job, depth_job = _start_networks(sess, frame, trunk=req.want_cloud)
+    seg_job, depth_job = _start_networks(sess, frame)
     try:
         return _measure_frame(path, rgb, camera, req, sess, tm, frame, seg_job, depth_job)
     finally:
@@ -197,16 +197,13 @@ def _measure(path, rgb, camera, req: _Request, sess: Session, tm: dict) -> Measu
         depth_job.wait()
 
 
-def _start_networks(sess: Session, frame: WorkFrame, trunk: bool = False):
+def _start_networks(sess: Session, frame: WorkFrame):
     """The segmenter, then the depth network (it needs the trees' union), on the background
-    thread: onnxruntime releases the GIL, and the band detector needs no mask. ``trunk``: also
-    the segmenter's trunk probability (for the clouds; the other outputs are the same)."""
+    thread: onnxruntime releases the GIL, and the band detector needs no mask."""
     img = frame.image
     h, w = frame.shape
     fx = float(frame.camera.K[0, 0])
-    trunk = trunk and getattr(sess.segmenter, "has_trunk", False)
-    kw = {"trunk": True} if trunk else {}
-    seg_job = sess.background(lambda: sess.segmenter.predict(img, size=(w, h), **kw))
+    seg_job = sess.background(lambda: sess.segmenter.predict(img, size=(w, h)))
     depth_job = sess.background(lambda: sess.depth.predict(img, seg_job.result().instance > 0, fx))
     return seg_job, depth_job
 
@@ -245,9 +242,7 @@ def _measure_frame(path, rgb, camera, req: _Request, sess: Session, tm: dict, fr
     _check_plausible(res, path, frame, sess.config)
     _check_row_against_marker(res, path, frame, choice, req, sess.config.row_marker_max_px)
     if req.want_cloud or req.want_debug:
-        tp = getattr(seg, "trunk_prob", None)
-        trunk = None if tp is None else tp >= sess.segmenter.trunk_threshold
-        _clouds(res, frame, at_tap(), stem, silhouette, depth_job, tm, trunk)
+        _clouds(res, frame, at_tap(), stem, silhouette, depth_job, tm, lambda: _trunk_pixels(sess, frame, req))
     if req.want_debug:
         res.debug.update(image=frame.image, image_scale=frame.scale, rope_polyline=np.asarray(choice.rope.polyline),
                          tree_mask=stem.tree_mask, rope_thickness_px=ruler.thickness_px,
@@ -502,12 +497,23 @@ def _perception(frame: WorkFrame, choice: RopeChoice, stem: _Stem, ruler, ground
         extra={"tree_mask_from_rope": stem.tid == 0})
 
 
+def _trunk_pixels(sess: Session, frame: WorkFrame, req: _Request):
+    """The working image's trunk pixels (H, W) bool for the clouds (the segmenter's trunk head,
+    in tiles: :meth:`~monodbh.models.runtime.segmenter.Segmenter.trunk_map`), None where no
+    cloud is asked for or no head is shipped."""
+    seg = sess.segmenter
+    if not req.want_cloud or not getattr(seg, "has_trunk", False):
+        return None
+    return seg.trunk_map(frame.image) >= seg.trunk_threshold
+
+
 def _clouds(res: MeasureResult, frame: WorkFrame, instance, stem: _Stem, silhouette: _TreeSilhouette,
             depth_job, tm: dict, trunk=None) -> None:
     """The scene cloud (the depth map rescaled to the measured distance) and the tree's cloud;
-    ``trunk`` (H, W) bool: the trunk pixels that flag their points."""
+    ``trunk``: a function giving the trunk pixels (H, W) bool that flag their points, or None."""
     from .clouds import scene_cloud, tree_cloud
     t = time.perf_counter()
+    trunk = trunk() if trunk is not None else None
     cands = res.debug.get("scale_candidates", {})
     lam_net = cands.get("network", (None,))[0]
     lam = float(np.linalg.norm(res.debug["axis_point"]))

@@ -26,7 +26,8 @@ of the whole photo (:func:`score_trunk_in_crop`): how much a zoomed second pass 
 ``--trunk`` scores the segmenter's trunk head instead of its "tree" instances: the trunk pixels
 are those whose trunk probability reaches the segmenter's ``trunk_threshold``, the instances
 their connected parts (8-neighbour), so a trunk is scored against the stem the head found, not
-against a whole tree with its crown. ``--tiles F`` segments the whole photo as overlapping square tiles of side ``F`` x its long side
+against a whole tree with its crown; with ``--tiles F``, the mean of the head's probability over
+the tiles (:meth:`~monodbh.models.runtime.segmenter.Segmenter.trunk_map`), without: one pass. ``--tiles F`` segments the whole photo as overlapping square tiles of side ``F`` x its long side
 (half a tile apart, :func:`segment_tiled`), without knowing where the trunks are: a pixel is
 "tree" where at least half the tiles that hold it say so, and the instances are the connected
 parts of that mask (so touching trunks and crowns merge, which the IoU counts).
@@ -34,7 +35,7 @@ parts of that mask (so touching trunks and crowns merge, which the IoU counts).
 Usage::
 
     python -m monodbh.toolkit.evaluation.real_trunk_bench ../shared/data/real_trees [--draw runs/real_trunks] [--json F]
-        [--model OTHER_SEGMENTER.onnx] [--crop 0.4 | --tiles 0.3 | --trunk]
+        [--model OTHER_SEGMENTER.onnx] [--crop 0.4 | [--tiles 0.3] [--trunk]]
 
 Imported by nothing (a command); imports the segmenter's runtime and ``monodbh.calib``.
 """
@@ -47,6 +48,8 @@ from pathlib import Path
 from typing import Optional, Sequence
 
 import numpy as np
+
+from monodbh.models.runtime.segmenter import tile_origins
 
 __all__ = ["OUTLINES", "MIN_WIDTH_PX", "FOUND_IOU", "load_outlines", "rasterize", "score_trunk",
            "trunk_instances", "score_photo", "crop_around", "score_trunk_in_crop", "tile_origins", "segment_tiled",
@@ -167,7 +170,8 @@ def score_photo(rgb: np.ndarray, entry: dict, segmenter,
     Returns ``(scores, segmentation)``."""
     H, W = rgb.shape[:2]
     if trunk:
-        seg = segmenter.predict(rgb, size=(W, H), trunk=True)
+        seg = segmenter.predict(rgb, size=(W, H))
+        seg.trunk_prob = segmenter.trunk_map(rgb, (W, H), tiles)
         tree, inst = trunk_instances(seg.trunk_prob, segmenter.trunk_threshold)
     else:
         seg = segment_tiled(rgb, segmenter, tiles) if tiles else segmenter.predict(rgb, size=(W, H))
@@ -210,28 +214,6 @@ def score_trunk_in_crop(rgb: np.ndarray, polygon, segmenter, frac: float) -> dic
     out = score_trunk(trunk[y0:y1, x0:x1], seg.instance, seg.semantic == seg.tree_class, seg.semantic,
                       seg.classes)
     out["width_px"] = float(trunk.sum()) / float(np.count_nonzero(trunk.any(1)))
-    return out
-
-
-def tile_origins(length: int, side: int) -> list[int]:
-    """Start offsets of tiles of ``side`` px, half a tile apart, covering ``length`` px (the last
-    one flush with the end; one tile at 0 where ``side >= length``).
-
-    Examples
-    --------
-    >>> tile_origins(100, 40)
-    [0, 20, 40, 60]
-    >>> tile_origins(100, 45)
-    [0, 22, 44, 55]
-    >>> tile_origins(30, 40)
-    [0]
-    """
-    if side >= length:
-        return [0]
-    step = max(1, side // 2)
-    out = list(range(0, length - side + 1, step))
-    if out[-1] + side < length:
-        out.append(length - side)
     return out
 
 
@@ -315,7 +297,8 @@ def run(folder: Path, outlines: dict, draw: Optional[Path] = None, segmenter=Non
     """Score every outlined photo of ``folder``; a row per trunk (``photo`` added); with
     ``crop``, each trunk in its own crop (:func:`score_trunk_in_crop`, no drawing); with
     ``tiles``, the photo segmented in tiles (:func:`segment_tiled`); with ``trunk``, the trunk
-    head's trunks (:func:`trunk_instances`; drawn in blue instead of the "tree" pixels)."""
+    head's trunks (:func:`trunk_instances`, in ``tiles`` if given; drawn in blue instead of the
+    "tree" pixels)."""
     from monodbh.calib import load_photo
     from monodbh.models.runtime.segmenter import Segmenter
 
@@ -361,8 +344,8 @@ def main(argv=None) -> int:
     ap.add_argument("--trunk", action="store_true",
                     help="score the segmenter's trunk head (its trunks) instead of its tree instances")
     a = ap.parse_args(argv)
-    if sum(x is not None and x is not False for x in (a.crop, a.tiles, a.trunk or None)) > 1:
-        ap.error("--crop, --tiles and --trunk exclude each other")
+    if a.crop is not None and (a.tiles is not None or a.trunk):
+        ap.error("--crop excludes --tiles and --trunk")
     for flag, v in (("--crop", a.crop), ("--tiles", a.tiles)):
         if v is not None and not 0 < v <= 1:
             ap.error(f"{flag} must be in (0, 1], got {v}")
