@@ -138,26 +138,31 @@ def _logits_at_labels(head, x):
     return TF.interpolate(head(x), size=(LABEL_SIDE, LABEL_SIDE), mode="bilinear", align_corners=False)
 
 
-def evaluate(head, F: np.ndarray, Y: np.ndarray, threshold: float = THRESHOLD,
-             batch: int = 16) -> dict[str, float]:
-    """Pixel scores of the head on features ``F`` (N, D, h, w) against labels ``Y`` (N, 256, 256)
-    uint8: ``iou`` (all pixels pooled), ``iou_per_photo`` (mean), ``recall``, ``precision``."""
-    import torch
-    head.eval()
-    inter = np.zeros(len(F)); union = np.zeros(len(F)); pred = np.zeros(len(F)); true = np.zeros(len(F))
-    t = float(np.log(threshold / (1 - threshold)))
-    with torch.no_grad():
-        for a in range(0, len(F), batch):
-            lo = _logits_at_labels(head, torch.from_numpy(F[a:a + batch].astype(np.float32)))[:, 0].numpy()
-            P, G = lo > t, Y[a:a + batch] >= 128
-            inter[a:a + batch] = (P & G).sum((1, 2))
-            union[a:a + batch] = (P | G).sum((1, 2))
-            pred[a:a + batch] = P.sum((1, 2))
-            true[a:a + batch] = G.sum((1, 2))
-    return {"photos": int(len(F)), "iou": float(inter.sum() / max(union.sum(), 1)),
+def _pixel_scores(masks, threshold: float) -> dict[str, float]:
+    """Scores of ``(predicted, true)`` trunk masks (each (h, w) bool), one pair per photo:
+    ``iou`` (all pixels pooled), ``iou_per_photo`` (mean), ``recall``, ``precision``."""
+    counts = np.array([((P & G).sum(), (P | G).sum(), P.sum(), G.sum()) for P, G in masks], np.float64)
+    inter, union, pred, true = counts.reshape(-1, 4).T
+    return {"photos": int(len(counts)), "iou": float(inter.sum() / max(union.sum(), 1)),
             "iou_per_photo": float(np.mean(inter / np.maximum(union, 1))),
             "recall": float(inter.sum() / max(true.sum(), 1)),
             "precision": float(inter.sum() / max(pred.sum(), 1)), "threshold": threshold}
+
+
+def evaluate(head, F: np.ndarray, Y: np.ndarray, threshold: float = THRESHOLD,
+             batch: int = 16) -> dict[str, float]:
+    """Pixel scores (:func:`_pixel_scores`) of the head on features ``F`` (N, D, h, w) against
+    labels ``Y`` (N, 256, 256) uint8."""
+    import torch
+    head.eval()
+    t = float(np.log(threshold / (1 - threshold)))
+
+    def masks():
+        with torch.no_grad():
+            for a in range(0, len(F), batch):
+                lo = _logits_at_labels(head, torch.from_numpy(F[a:a + batch].astype(np.float32)))[:, 0].numpy()
+                yield from zip(lo > t, Y[a:a + batch] >= 128)
+    return _pixel_scores(masks(), threshold)
 
 
 def train(out: str | os.PathLike, data: Sequence[str | os.PathLike], val: Sequence[str | os.PathLike] = (),
@@ -314,16 +319,9 @@ def evaluate_onnx(path: str | os.PathLike, F: np.ndarray, Y: np.ndarray,
     from monodbh.models.runtime.segmenter import trunk_probability
     from monodbh.models.runtime.trunk_head import TrunkHead
     head = TrunkHead(path)
-    inter = union = pred = true = 0
-    ious = []
-    for f, y in zip(F, Y):
-        P = trunk_probability(head.logits(np.asarray(f[None], np.float32)), (LABEL_SIDE, LABEL_SIDE)) >= threshold
-        G = y >= 128
-        n_i, n_u = int((P & G).sum()), int((P | G).sum())
-        inter += n_i; union += n_u; pred += int(P.sum()); true += int(G.sum())
-        ious.append(n_i / max(n_u, 1))
-    return {"photos": int(len(F)), "iou": inter / max(union, 1), "iou_per_photo": float(np.mean(ious)),
-            "recall": inter / max(true, 1), "precision": inter / max(pred, 1), "threshold": threshold}
+    side = (LABEL_SIDE, LABEL_SIDE)
+    return _pixel_scores(((trunk_probability(head.logits(np.asarray(f[None], np.float32)), side) >= threshold,
+                           y >= 128) for f, y in zip(F, Y)), threshold)
 
 
 def _same_outputs(old: str | os.PathLike, new: str | os.PathLike, photos: Sequence[np.ndarray]) -> bool:
@@ -452,18 +450,13 @@ def score_shipped(folder: str | os.PathLike, n: int | None = None,
     idx = list_samples(folder)[:n]
     if not idx or "stem" not in read_sample(folder, idx[0]):
         return {}
-    inter = union = pred = true = 0
-    ious = []
-    for i in idx:
-        s = read_sample(folder, i)
-        _, _, tl = seg.raw_with_trunk(s["rgb"])
-        P = trunk_probability(tl, (LABEL_SIDE, LABEL_SIDE)) >= seg.trunk_threshold
-        G = _stem_label(s["stem"]) >= 128
-        n_i, n_u = int((P & G).sum()), int((P | G).sum())
-        inter += n_i; union += n_u; pred += int(P.sum()); true += int(G.sum())
-        ious.append(n_i / max(n_u, 1))
-    return {"photos": len(ious), "iou": inter / max(union, 1), "iou_per_photo": float(np.mean(ious)),
-            "recall": inter / max(true, 1), "precision": inter / max(pred, 1), "threshold": seg.trunk_threshold}
+    def masks():
+        for i in idx:
+            s = read_sample(folder, i)
+            tl = seg.raw_with_trunk(s["rgb"])[2]
+            yield (trunk_probability(tl, (LABEL_SIDE, LABEL_SIDE)) >= seg.trunk_threshold,
+                   _stem_label(s["stem"]) >= 128)
+    return _pixel_scores(masks(), seg.trunk_threshold)
 
 
 def _eval_cmd(folders: Sequence[Path], run: Path | None) -> dict[str, Any]:

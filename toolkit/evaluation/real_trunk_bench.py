@@ -169,9 +169,10 @@ def score_photo(rgb: np.ndarray, entry: dict, segmenter,
     ``trunk``, against the trunk head's instances (:func:`trunk_instances`).
     Returns ``(scores, segmentation)``."""
     H, W = rgb.shape[:2]
-    if trunk:
-        seg = segmenter.predict(rgb, size=(W, H))
-        seg.trunk_prob = segmenter.trunk_map(rgb, (W, H), tiles)
+    if trunk:                                   # one pass gives the map with the segmentation
+        seg = segmenter.predict(rgb, size=(W, H), trunk=not tiles)
+        if tiles:
+            seg.trunk_prob = segmenter.trunk_map(rgb, (W, H), tiles)
         tree, inst = trunk_instances(seg.trunk_prob, segmenter.trunk_threshold)
     else:
         seg = segment_tiled(rgb, segmenter, tiles) if tiles else segmenter.predict(rgb, size=(W, H))
