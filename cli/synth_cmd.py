@@ -37,6 +37,9 @@ def synth(
     foot: str = typer.Option("plain", "--foot", help="plain (the default); clutter: grass tufts round the "
                              "roped stem's foot on every scene and a low bush beside it on 40 %; hidden: tufts "
                              "0.05-0.6 m high and a bush in front of the foot on 35 % (stem-base training)."),
+    view: str = typer.Option("level", "--view", help="level (the camera at about breast height, the "
+                             "default), upward (from 1-5 m, up the trunk into the crown, 30-70 degrees up; trunk "
+                             "training) or mixed (upward on a third)."),
     look: str = typer.Option("default", "--look", help="default; randomized: the same scenes with their colours, "
                              "texture contrast, light and camera response randomised (for training); or heldout: "
                              "the same scenes with textures cut from the real photos, another light and another "
@@ -51,7 +54,7 @@ def synth(
         raise typer.Exit(1)
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeRemainingColumn
 
-    from monodbh.models.synthetic.scene import FEET, MARKERS, STANDS
+    from monodbh.models.synthetic.scene import FEET, MARKERS, STANDS, VIEWS
     W, H = parse_size(size)
     if marker not in MARKERS:
         raise typer.BadParameter(f"expected {', '.join(MARKERS[:-1])} or {MARKERS[-1]}, got {marker!r}",
@@ -61,6 +64,9 @@ def synth(
                                  param_hint="--stand")
     if foot not in FEET:
         raise typer.BadParameter(f"expected {' or '.join(FEET)}, got {foot!r}", param_hint="--foot")
+    if view not in VIEWS:
+        raise typer.BadParameter(f"expected {', '.join(VIEWS[:-1])} or {VIEWS[-1]}, got {view!r}",
+                                 param_hint="--view")
     from monodbh.models.synthetic.looks import HELDOUT, LOOKS
     if look not in LOOKS:
         raise typer.BadParameter(f"expected one of {', '.join(LOOKS)}, got {look!r}", param_hint="--look")
@@ -78,7 +84,7 @@ def synth(
         task = prog.add_task(f"rendering {W}x{H}", total=count)
         res = synthesize(out, count, seed, (W, H), start=start, workers=workers or None,
                          distortion=not no_distortion, marker=marker, look=look, stand=stand, foot=foot,
-                         progress=lambda r: prog.advance(task))
+                         view=view, progress=lambda r: prog.advance(task))
     typer.echo(f"{res['count']} samples in {res['seconds']:.1f} s ({res['samples_per_s']:.2f} samples/s) -> {out}",
                err=True)
     if contact:

@@ -88,6 +88,37 @@ def test_trunk_probability_upsamples_in_logit_space():
         trunk_probability(np.zeros((1, 2, 2), np.float32), (4, 4))
 
 
+def test_tile_views_are_square_crops_whose_label_stays_on_their_pixels():
+    # a photo whose red channel is the stem label: every crop's label must be its own red pixels
+    H, W = 90, 120
+    stem = np.zeros((H, W), bool)
+    stem[:, 50:62] = True
+    stem[20:30, :] = True
+    rgb = np.zeros((H, W, 3), np.uint8)
+    rgb[..., 0] = stem * 200
+    views = th.tile_views(rgb, stem, 40, np.random.default_rng(3))
+    sides = [v[0].shape[0] for v in views]
+    assert all(v[0].shape == (s, s, 3) and v[1].shape == (s, s) for v, s in zip(views, sides))
+    assert 0.4 * W - 1 <= min(sides) and max(sides) <= H        # (0.4-0.75) x long side, at most the short
+    jittered = 0
+    for crop, lab in views:
+        same = np.array_equal(crop[..., 0] > 100, lab)
+        jittered += not np.array_equal(crop[..., 0], lab * np.uint8(200))
+        assert same or np.mean((crop[..., 0] > crop[..., 0].mean()) == lab) > 0.9
+    assert 5 < jittered < 35                                    # about half jittered
+    again = th.tile_views(rgb, stem, 40, np.random.default_rng(3))
+    assert all(np.array_equal(a[0], b[0]) for a, b in zip(views, again))
+
+
+def test_jittered_photo_keeps_shape_and_order_of_brightness():
+    rng = np.random.default_rng(0)
+    ramp = np.tile(np.linspace(0, 255, 64).astype(np.uint8)[None, :, None], (8, 1, 3))
+    for _ in range(10):
+        out = th.jitter_photo(ramp, rng)
+        assert out.shape == ramp.shape and out.dtype == np.uint8
+        assert out[4, -4].mean() > out[4, 3].mean() + 40
+
+
 def test_a_few_steps_learn_a_trunk_from_features_and_a_resumed_run_ends_the_same(tmp_path, monkeypatch):
     # features that say "trunk" in channel 0: the head must learn them within a few steps, and a
     # run stopped half-way and resumed must end with the weights of an uninterrupted one
@@ -106,7 +137,7 @@ def test_a_few_steps_learn_a_trunk_from_features_and_a_resumed_run_ends_the_same
         def __init__(self, *a, **k):
             pass
     monkeypatch.setattr(th, "FeatureExtractor", Ext)
-    monkeypatch.setattr(th, "load_features", lambda folder, ext, cache: (F, Y))
+    monkeypatch.setattr(th, "load_features", lambda folder, ext, cache, *views: (F, Y))
     kw = dict(steps=60, batch=4, lr=1e-2, checkpoint_every=20, head_cfg=TrunkHeadConfig(in_ch=32, ch=8),
               log=lambda *_: None, threads=1)
     scores = th.train(tmp_path / "a", ["x"], ["x"], **kw)
@@ -177,6 +208,10 @@ def test_the_shipped_head_is_scored_on_folders_with_the_stem_label_only(tmp_path
     write_sample(tmp_path / "new", 0, s)
     r = th.score_shipped(tmp_path / "new")
     assert r["photos"] == 1 and 0.3 < r["iou"] <= 1 and r["threshold"] == th.THRESHOLD
+    t = th.score_shipped(tmp_path / "new", tiles=0.5)              # dbh reconstruct's map, full size
+    assert t["tiles"] == 0.5 and 0.3 < t["iou"] <= 1 and t["iou"] != r["iou"]
+    with pytest.raises(ValueError, match="scores the shipped head only"):
+        th._eval_cmd([tmp_path / "new"], tmp_path, tiles=0.5)
     old = tmp_path / "old"
     write_sample(old, 0, s)
     p = old / "000000.npz"

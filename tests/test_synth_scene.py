@@ -273,6 +273,30 @@ def test_a_park_scene_is_open_grown_and_leaves_forest_scenes_alone():
         sample_scene(np.random.default_rng(0), 64, 48, stand="jungle")
 
 
+def test_an_upward_view_looks_up_the_main_trunk_from_close_by_and_changes_nothing_else():
+    """``view="upward"``: the camera 1-5 m from the main stem, 30-70 degrees up, the stem in the
+    picture (its ``stem`` label); the scene's objects are the level view's, and ``"mixed"`` looks
+    up on some scenes only."""
+    from monodbh.models.synthetic.scene import sample_scene
+    for i in range(3):
+        s = generate_sample(32, i, (192, 144), view="upward", stand="mixed")
+        sc, m = s["scene"], s["meta"]
+        assert m["view"] == "upward" and 30.0 - 1e-6 <= m["pitch_deg"] <= 70.0 + 1e-6
+        main = sc.trees[0]
+        d = np.hypot(*(sc.camera.t_wc[:2] - main.base[:2]))
+        assert 1.0 <= d - main.r_bh <= 5.0
+        assert (s["stem"] & (s["instance"] == 1)).sum() > 50        # the main trunk is seen
+    level = sample_scene(np.random.default_rng(5), 64, 48, seed=5)
+    up = sample_scene(np.random.default_rng(5), 64, 48, seed=5, view="upward")
+    assert [t.base.tolist() for t in up.trees] == [t.base.tolist() for t in level.trees]
+    assert not np.array_equal(up.camera.R_wc, level.camera.R_wc)
+    assert level.view == "level" and up.view == "upward"
+    mixed = [sample_scene(np.random.default_rng(k), 64, 48, seed=k, view="mixed").view for k in range(12)]
+    assert 0 < mixed.count("upward") < 12
+    with pytest.raises(ValueError, match="view must be one of"):
+        sample_scene(np.random.default_rng(0), 64, 48, view="sideways")
+
+
 def test_foot_clutter_adds_grass_and_bushes_at_the_roped_foot_only():
     """``foot="clutter"``: 1-3 grass tufts round the main stem's foot on every scene and a low
     bush beside it on some; the scene's other objects are the plain scene's."""

@@ -186,7 +186,7 @@ def scene_meta(scene: Scene, out: dict) -> dict:
 
 def generate_sample(seed: int, index: int = 0, size: tuple[int, int] = (512, 512), *,
                     distortion: bool = True, aa: bool = True, marker: str = "rope", look: str = "default",
-                    stand: str = "forest", foot: str = "plain") -> dict:
+                    stand: str = "forest", foot: str = "plain", view: str = "level") -> dict:
     """Render one sample.
 
     Parameters
@@ -202,6 +202,8 @@ def generate_sample(seed: int, index: int = 0, size: tuple[int, int] = (512, 512
     stand : ``"forest"`` (the default), ``"park"`` or ``"mixed"``; see :func:`~.scene.sample_scene`.
     foot : ``"plain"`` (the default), ``"clutter"`` (grass and a bush at the roped stem's foot)
         or ``"hidden"`` (taller grass, a bush in front of the foot); see :func:`~.scene.sample_scene`.
+    view : ``"level"`` (the default), ``"upward"`` (up the trunk into the crown from close by) or
+        ``"mixed"`` (upward on a third); see :func:`~.scene.sample_scene`.
 
     Returns
     -------
@@ -214,13 +216,16 @@ def generate_sample(seed: int, index: int = 0, size: tuple[int, int] = (512, 512
         raise ValueError(f"image size {W}x{H} is too small (min 16x16)")
     s = sample_seed(seed, index)
     rng = np.random.default_rng(s)
-    scene = sample_scene(rng, W, H, distortion=distortion, seed=s, marker=marker, stand=stand, foot=foot)
+    scene = sample_scene(rng, W, H, distortion=distortion, seed=s, marker=marker, stand=stand, foot=foot,
+                         view=view)
     out = render_scene(scene, rng, look=look)
     out["meta"] = scene_meta(scene, out)
     out["meta"]["look"] = look
     out["meta"]["stand"] = scene.stand
     if foot != "plain":
         out["meta"]["foot"] = foot
+    if view != "level":
+        out["meta"]["view"] = scene.view
     out["meta"]["dataset_seed"] = int(seed)
     out["meta"]["index"] = int(index)
     out["scene"] = scene

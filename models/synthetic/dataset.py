@@ -20,31 +20,32 @@ _ONE_THREAD_ENV = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM
 
 
 def _one(args):
-    folder, seed, index, size, distortion, marker, look, stand, foot = args
+    folder, seed, index, size, distortion, marker, look, stand, foot, view = args
     if sample_done(folder, index):
         return index, 0.0, True
     t = time.perf_counter()
     s = generate_sample(seed, index, size, distortion=distortion, marker=marker, look=look,
-                        stand=stand, foot=foot)
+                        stand=stand, foot=foot, view=view)
     write_sample(folder, index, s)
     return index, time.perf_counter() - t, False
 
 
 def synthesize(folder, count: int, seed: int, size=(512, 512), *, start: int = 0, workers: int | None = None,
                distortion: bool = True, marker: str = "rope", look: str = "default", stand: str = "forest",
-               foot: str = "plain", progress=None) -> dict:
+               foot: str = "plain", view: str = "level", progress=None) -> dict:
     """Render ``count`` samples into ``folder`` (resumable: finished samples are skipped).
 
     ``marker``: the 1.3 m marker's kind (:func:`~monodbh.models.synthetic.scene.sample_scene`).
     ``look``: ``"default"``, ``"randomized"`` or ``"heldout"`` (:mod:`~monodbh.models.synthetic.looks`).
     ``stand``: ``"forest"``, ``"park"`` or ``"mixed"`` (:func:`~monodbh.models.synthetic.scene.sample_scene`).
-    ``foot``: ``"plain"`` or ``"clutter"`` (the same function).
+    ``foot``: ``"plain"``, ``"clutter"`` or ``"hidden"``; ``view``: ``"level"``, ``"upward"`` or
+    ``"mixed"`` (the same function).
 
     Returns a dict with ``count``, ``seconds``, ``samples_per_s``.
     """
     Path(folder).mkdir(parents=True, exist_ok=True)
     workers = workers or os.cpu_count() or 1
-    jobs = [(str(folder), seed, i, tuple(size), distortion, marker, look, stand, foot)
+    jobs = [(str(folder), seed, i, tuple(size), distortion, marker, look, stand, foot, view)
             for i in range(start, start + count)]
     t0 = time.perf_counter()
     done = 0

@@ -220,6 +220,7 @@ class Scene:
     seed: int
     textures: dict = field(default_factory=dict)
     stand: str = "forest"       # "forest" or "park" (:data:`STANDS`; "mixed" picks one per scene)
+    view: str = "level"         # "level" or "upward" (:data:`VIEWS`; "mixed" picks one per scene)
 
 
 # --------------------------------------------------------------------------- sampling
@@ -304,12 +305,17 @@ STANDS = ("forest", "park", "mixed")
 #: likely over as under the stem-base label's 0.3 m and a bush in front of the foot on 35 %
 #: (``"hidden"``)
 FEET = ("plain", "clutter", "hidden")
+#: how the camera looks at the main tree (``sample_scene(view=...)``): level at about breast
+#: height (the measuring protocol's), up its trunk into the crown from close by, or upward on a
+#: third of the scenes
+VIEWS = ("level", "upward", "mixed")
 #: a strap's width along the stem (m): flagging tape wound in a few turns or webbing
 STRAP_WIDTH_RANGE_M = (0.02, 0.05)
 
 
 def sample_scene(rng: np.random.Generator, width: int, height: int, *, distortion: bool = True,
-                 seed: int = 0, marker: str = "rope", stand: str = "forest", foot: str = "plain") -> Scene:
+                 seed: int = 0, marker: str = "rope", stand: str = "forest", foot: str = "plain",
+                 view: str = "level") -> Scene:
     """Sample a random forest scene and a handheld camera looking at a (usually roped) tree.
 
     Parameters
@@ -332,6 +338,11 @@ def sample_scene(rng: np.random.Generator, width: int, height: int, *, distortio
         (:func:`_foot_hidden`: the tops of what hides a foot, which the network must not take
         for it). The clutter's draws come from their own generator, so the scene's other objects
         are the same (the render's texture draws are not).
+    view : ``"level"`` (the default: the camera looks at the main tree from -15 to +28 degrees of
+        pitch), ``"upward"``: from 1-5 m away, up the trunk into the crown, 30-70 degrees up
+        (:func:`_look_up`; trunk training, as in many openly licensed tree photos), or ``"mixed"``
+        (upward on a third of the scenes). Its draws come from their own generator, so the
+        scene's objects are those of ``"level"``.
 
     Returns
     -------
@@ -343,6 +354,8 @@ def sample_scene(rng: np.random.Generator, width: int, height: int, *, distortio
         raise ValueError(f"stand must be one of {STANDS}, got {stand!r}")
     if foot not in FEET:
         raise ValueError(f"foot must be one of {FEET}, got {foot!r}")
+    if view not in VIEWS:
+        raise ValueError(f"view must be one of {VIEWS}, got {view!r}")
     slope = rng.normal(0, 0.04, 2) * (rng.random() < 0.7)
     waves = np.array([[rng.uniform(0, 0.25), rng.normal(0, 0.15), rng.normal(0, 0.15), rng.uniform(0, 6.3)]
                       for _ in range(3)])
@@ -562,7 +575,47 @@ def sample_scene(rng: np.random.Generator, width: int, height: int, *, distortio
         _foot_clutter(scene, np.random.default_rng([int(seed), 7002]))
     elif foot == "hidden":
         _foot_hidden(scene, np.random.default_rng([int(seed), 7003]))
+    vrng = np.random.default_rng([int(seed), 7004])
+    if view == "upward" or (view == "mixed" and vrng.random() < 1 / 3):
+        _look_up(scene, vrng)
     return scene
+
+
+def _look_up(scene: Scene, rng: np.random.Generator) -> None:
+    """Move the camera 1-5 m from the main tree, 1.3-1.8 m above the ground, and aim it up the
+    trunk at a point 2 m high to 2 m above the crown's base (at most 10 m), 30-70 degrees up,
+    rolled up to 8 degrees (in place). Positions within 0.6 m of another stem are skipped."""
+    main = scene.trees[0]
+    cam = scene.camera
+    W, H, K = cam.width, cam.height, cam.K
+    others = [t for t in scene.trees[1:]]
+    for _attempt in range(50):
+        d = float(rng.uniform(1.0, 5.0)) + main.r_bh
+        az = rng.uniform(0, 2 * np.pi)
+        xy = main.base[:2] + d * np.array([np.cos(az), np.sin(az)])
+        if any(np.hypot(*(t.base[:2] - xy)) < t.r_bh + 0.6 for t in others):
+            continue
+        h = float(rng.uniform(1.3, 1.8))
+        pos = np.array([xy[0], xy[1], float(ground_height(scene.ground, *xy)) + h])
+        top = max(2.5, min(10.0, main.height_m - 1.0, main.crown_base_m + 2.0))
+        target = main.axis_point(rng.uniform(2.0, top))
+        rel = target - pos
+        pitch = float(np.clip(np.arctan2(rel[2], np.hypot(rel[0], rel[1])) + rng.normal(0, 0.1),
+                              np.deg2rad(30), np.deg2rad(70)))
+        yaw = np.arctan2(rel[1], rel[0]) + np.arctan((rng.uniform(0.3, 0.7) - 0.5) * W / K[0, 0])
+        roll = np.deg2rad(rng.uniform(-8, 8))
+        Rwc = _rotation(yaw, pitch, roll)
+        pc = Rwc.T @ (target - pos)
+        if pc[2] <= 0.5:
+            continue
+        u = K[0, 0] * pc[0] / pc[2] + K[0, 2]
+        v = K[1, 1] * pc[1] / pc[2] + K[1, 2]
+        if 0.1 * W < u < 0.9 * W and 0.1 * H < v < 0.9 * H:
+            scene.camera = Camera(width=W, height=H, K=K, dist=cam.dist, R_wc=Rwc, t_wc=pos, height_m=h,
+                                  pitch_deg=float(np.rad2deg(pitch)), roll_deg=float(np.rad2deg(roll)),
+                                  yaw_deg=float(np.rad2deg(yaw)))
+            scene.view = "upward"
+            return
 
 
 def _foot_hidden(scene: Scene, rng: np.random.Generator) -> None:

@@ -35,7 +35,8 @@ from typing import Any, Sequence
 
 import numpy as np
 
-__all__ = ["FEATURE_TENSOR", "THRESHOLD", "feature_tensor_name", "FeatureExtractor", "load_features",
+__all__ = ["FEATURE_TENSOR", "THRESHOLD", "feature_tensor_name", "FeatureExtractor", "jitter_photo", "tile_views",
+           "load_features",
            "train", "evaluate", "expose_features", "export_head", "evaluate_onnx", "ship", "score_shipped", "main"]
 
 #: the segmenter's mask-feature tensor (fp32 export; the int8 file reads it after its
@@ -100,10 +101,43 @@ def _stem_label(stem: np.ndarray) -> np.ndarray:
     return np.round(y * 255).astype(np.uint8)
 
 
+def jitter_photo(rgb: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """A photometric variant of ``rgb`` (H, W, 3) uint8: gamma 0.6-1.6, contrast 0.7-1.3,
+    brightness -25..25, saturation 0.6-1.4, and a light blur on a third (the camera responses
+    and exposures the generator's looks do not span)."""
+    import cv2
+    x = (rgb.astype(np.float32) / 255.0) ** rng.uniform(0.6, 1.6)
+    grey = x.mean(axis=2, keepdims=True)
+    x = grey + (x - grey) * rng.uniform(0.6, 1.4)
+    x = (x - 0.5) * rng.uniform(0.7, 1.3) + 0.5 + rng.uniform(-0.1, 0.1)
+    out = np.clip(x * 255.0 + 0.5, 0, 255).astype(np.uint8)
+    if rng.random() < 1 / 3:
+        out = cv2.GaussianBlur(out, (0, 0), rng.uniform(0.5, 1.2))
+    return out
+
+
+def tile_views(rgb: np.ndarray, stem: np.ndarray, n: int, rng: np.random.Generator,
+               frac: tuple[float, float] = (0.4, 0.75)) -> list[tuple[np.ndarray, np.ndarray]]:
+    """``n`` square crops ``(rgb (s, s, 3), stem (s, s))`` of side ``frac`` x the photo's long side
+    (at most its short side), at random places, each photometrically jittered
+    (:func:`jitter_photo`) on half: the tiles that ``Segmenter.trunk_map`` feeds the head, where
+    a trunk is twice as wide relative to the input as in the whole photo."""
+    H, W = rgb.shape[:2]
+    out = []
+    for _ in range(n):
+        s = int(round(min(rng.uniform(*frac) * max(H, W), min(H, W))))
+        y0, x0 = int(rng.integers(0, H - s + 1)), int(rng.integers(0, W - s + 1))
+        crop = np.ascontiguousarray(rgb[y0:y0 + s, x0:x0 + s])
+        out.append((jitter_photo(crop, rng) if rng.random() < 0.5 else crop, stem[y0:y0 + s, x0:x0 + s]))
+    return out
+
+
 def load_features(folder: str | os.PathLike, extractor: FeatureExtractor,
-                  cache_dir: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
-    """Features ``(N, D, h, w)`` float16 and labels ``(N, 256, 256)`` uint8 of a ``dbh synth``
-    folder, cached in ``cache_dir`` per folder and segmenter file.
+                  cache_dir: str | os.PathLike, views: int = 0, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Features ``(N (1 + views), D, h, w)`` float16 and labels ``(N (1 + views), 256, 256)``
+    uint8 of a ``dbh synth`` folder's N photos, cached in ``cache_dir`` per folder, segmenter
+    file and views: each whole photo, then its ``views`` tile-like crops (:func:`tile_views`,
+    drawn from ``seed`` and the sample's index).
 
     Raises
     ------
@@ -112,7 +146,8 @@ def load_features(folder: str | os.PathLike, extractor: FeatureExtractor,
     """
     from monodbh.models.synthetic.io import list_samples, read_sample
     folder = Path(folder)
-    cache = Path(cache_dir) / f"{folder.name}_{extractor.sha256[:12]}.npz"
+    tag = f"_v{views}s{seed}" if views else ""
+    cache = Path(cache_dir) / f"{folder.name}_{extractor.sha256[:12]}{tag}.npz"
     if cache.exists():
         with np.load(cache) as z:
             return z["F"], z["Y"]
@@ -121,8 +156,12 @@ def load_features(folder: str | os.PathLike, extractor: FeatureExtractor,
         s = read_sample(folder, i)
         if "stem" not in s:
             raise ValueError(f"{folder}: sample {i:06d} has no 'stem' label; render it again with dbh synth")
-        feats.append(extractor(s["rgb"]).astype(np.float16))
-        labels.append(_stem_label(s["stem"]))
+        pairs = [(s["rgb"], s["stem"])]
+        if views:
+            pairs += tile_views(s["rgb"], s["stem"], views, np.random.default_rng([seed, i]))
+        for rgb, stem in pairs:
+            feats.append(extractor(rgb).astype(np.float16))
+            labels.append(_stem_label(stem))
     if not feats:
         raise ValueError(f"{folder}: no samples")
     F, Y = np.stack(feats), np.stack(labels)
@@ -169,7 +208,7 @@ def train(out: str | os.PathLike, data: Sequence[str | os.PathLike], val: Sequen
           steps: int = 1500, batch: int = 16, lr: float = 2e-3, seed: int = 0,
           segmenter: str | os.PathLike | None = None, threads: int = 2,
           checkpoint_every: int = 250, resume: bool = False, stop_at: int | None = None,
-          head_cfg=None, log=print) -> dict[str, Any]:
+          head_cfg=None, views: int = 0, log=print) -> dict[str, Any]:
     """Train a head on the segmenter's features of ``data`` (resumable from ``out/checkpoint.pt``).
 
     Writes ``out/config.json``, ``out/checkpoint.pt`` (every ``checkpoint_every`` steps and at the
@@ -177,7 +216,8 @@ def train(out: str | os.PathLike, data: Sequence[str | os.PathLike], val: Sequen
     scores of :func:`evaluate` per ``val`` folder (also in ``out/val.json``). ``stop_at``: stop,
     checkpointed, after this many steps (``{}`` returned; ``resume=True`` goes on).
     ``head_cfg``: a :class:`~monodbh.models.modeling.trunk_head.TrunkHeadConfig` (default the
-    shipped size).
+    shipped size). ``views``: tile-like crops per training photo besides the whole photo
+    (:func:`tile_views`; validation stays on whole photos).
     """
     import torch
     from torch.nn import functional as TF
@@ -189,11 +229,11 @@ def train(out: str | os.PathLike, data: Sequence[str | os.PathLike], val: Sequen
     out.mkdir(parents=True, exist_ok=True)
     ext = FeatureExtractor(segmenter, threads)
     cache = out / "features"
-    parts = [load_features(d, ext, cache) for d in data]
+    parts = [load_features(d, ext, cache, views, seed) for d in data]
     F = np.concatenate([p[0] for p in parts])
     Y = np.concatenate([p[1] for p in parts])
     cfg = {"data": [str(d) for d in data], "val": [str(v) for v in val], "steps": steps, "batch": batch,
-           "lr": lr, "seed": seed, "segmenter_sha256": ext.sha256, "photos": int(len(F)),
+           "lr": lr, "seed": seed, "segmenter_sha256": ext.sha256, "photos": int(len(F)) // (1 + views), "views": views,
            "head": {"in_ch": head_cfg.in_ch, "ch": head_cfg.ch, "dilations": list(head_cfg.dilations)}}
     torch.manual_seed(seed)
     head = TrunkHead(head_cfg)
@@ -385,8 +425,9 @@ def ship(run: str | os.PathLike, val: Sequence[str | os.PathLike], models_dir: s
             em["models"]["segmenter"] = new_sha
     ext = FeatureExtractor(seg_path)
     cache = run / "features"
-    calib = load_features(cfg["data"][0], ext, cache)[0][:n_calib]
-    info = {"data": [Path(d).name for d in cfg["data"]], "steps": cfg["steps"], "photos": cfg["photos"]}
+    calib = load_features(cfg["data"][0], ext, cache, cfg.get("views", 0), cfg.get("seed", 0))[0][:n_calib]
+    info = {"data": [Path(d).name for d in cfg["data"]], "steps": cfg["steps"], "photos": cfg["photos"],
+            "views": cfg.get("views", 0)}
     out = models_dir / "trunk_head_int8.onnx"
     export_head(head, out, calib, info)
     scores = {Path(v).name: {k: (round(x, 4) if isinstance(x, float) else x) for k, x in
@@ -417,6 +458,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     t.add_argument("--lr", type=float, default=2e-3)
     t.add_argument("--seed", type=int, default=0)
     t.add_argument("--threads", type=int, default=2)
+    t.add_argument("--views", type=int, default=0,
+                   help="tile-like crops per training photo besides the whole photo (default 0)")
     t.add_argument("--resume", action="store_true")
     s = sub.add_parser("ship", help="attach a trained head to the shipped segmenter")
     s.add_argument("run", type=Path)
@@ -425,22 +468,28 @@ def main(argv: Sequence[str] | None = None) -> int:
     e = sub.add_parser("eval", help="score a run's head (or the shipped one) on dbh synth folders")
     e.add_argument("folders", nargs="+", type=Path)
     e.add_argument("--run", type=Path, help="default: the head attached to the shipped segmenter")
+    e.add_argument("--tiles", type=float, metavar="F",
+                   help="the shipped head's trunk map over tiles of side F x the photo's long side "
+                        "(Segmenter.trunk_map, dbh reconstruct's: 0.5), scored at the photo's resolution")
     a = ap.parse_args(argv)
     if a.cmd == "train":
-        scores = train(a.out, a.data, a.val, a.steps, a.batch, a.lr, a.seed, threads=a.threads, resume=a.resume)
+        scores = train(a.out, a.data, a.val, a.steps, a.batch, a.lr, a.seed, threads=a.threads, resume=a.resume,
+                       views=a.views)
         print(json.dumps(scores, indent=1))
     elif a.cmd == "ship":
         print(json.dumps(ship(a.run, a.val), indent=1))
     else:
-        print(json.dumps(_eval_cmd(a.folders, a.run), indent=1))
+        print(json.dumps(_eval_cmd(a.folders, a.run, a.tiles), indent=1))
     return 0
 
 
 def score_shipped(folder: str | os.PathLike, n: int | None = None,
-                  models_dir: str | os.PathLike | None = None) -> dict[str, Any]:
+                  models_dir: str | os.PathLike | None = None, tiles: float | None = None) -> dict[str, Any]:
     """The shipped trunk head (as the runtime runs it: int8, on the segmenter's ``mask_features``)
     on the first ``n`` samples of a ``dbh synth`` folder: :func:`evaluate`'s scores, or ``{}``
-    where the folder was rendered without the ``stem`` label."""
+    where the folder was rendered without the ``stem`` label. With ``tiles``, the trunk map
+    ``Segmenter.trunk_map(rgb, tile_frac=tiles)`` (``dbh reconstruct``'s) against the label at the
+    photo's own resolution instead of one pass at the segmenter's input side."""
     from monodbh.models.runtime.common import MODELS_DIR, load_manifest
     from monodbh.models.runtime.segmenter import Segmenter, trunk_probability
     from monodbh.models.synthetic.io import list_samples, read_sample
@@ -453,21 +502,27 @@ def score_shipped(folder: str | os.PathLike, n: int | None = None,
     def masks():
         for i in idx:
             s = read_sample(folder, i)
+            if tiles:
+                yield seg.trunk_map(s["rgb"], None, tiles) >= seg.trunk_threshold, s["stem"].astype(bool)
+                continue
             tl = seg.raw_with_trunk(s["rgb"])[2]
             yield (trunk_probability(tl, (LABEL_SIDE, LABEL_SIDE)) >= seg.trunk_threshold,
                    _stem_label(s["stem"]) >= 128)
-    return _pixel_scores(masks(), seg.trunk_threshold)
+    return {**_pixel_scores(masks(), seg.trunk_threshold), **({"tiles": tiles} if tiles else {})}
 
 
-def _eval_cmd(folders: Sequence[Path], run: Path | None) -> dict[str, Any]:
-    """Scores of a run's head (on the shipped segmenter's features) or of the shipped head."""
+def _eval_cmd(folders: Sequence[Path], run: Path | None, tiles: float | None = None) -> dict[str, Any]:
+    """Scores of a run's head (on the shipped segmenter's features) or of the shipped head (in
+    ``tiles`` where given)."""
+    if run is not None and tiles:
+        raise ValueError("--tiles scores the shipped head only: ship the run first, or leave --tiles out")
     if run is not None:
         ext = FeatureExtractor()
         head = _load_head(run)
         return {str(f): evaluate(head, *load_features(f, ext, run / "features")) for f in folders}
     out = {}
     for f in folders:
-        out[str(f)] = score_shipped(f)
+        out[str(f)] = score_shipped(f, tiles=tiles)
         if not out[str(f)]:
             raise ValueError(f"{f}: no samples with a 'stem' label; render it again with dbh synth")
     return out
