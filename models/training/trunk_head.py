@@ -2,8 +2,9 @@
 
 The head (:class:`~monodbh.models.modeling.trunk_head.TrunkHead`) reads the segmenter's
 ``mask_features`` and tells a tree's trunk from its crown and limbs. The segmenter stays frozen:
-its ``mask_features`` are computed once per training photo by the shipped int8 file (the tensor
-the runtime will feed the head), cached, and the head alone is trained on them against the
+its ``mask_features`` are computed once per training photo (whole, and with ``--views`` as
+tile-like crops, since the runtime runs the head over tiles) by the shipped int8 file (the
+tensor the runtime will feed the head), cached, and the head alone is trained on them against the
 generator's ``stem`` label (``dbh synth`` writes it: stems and the rope on them, not branches or
 foliage). Shipping writes the head as its own int8 file (``models/trunk_head_int8.onnx``) and
 adds the segmenter's ``mask_features`` to its file's outputs (copied out only when asked for, so
@@ -17,8 +18,10 @@ features, since the head is tied to the features it was trained on.
 Usage::
 
     python -m monodbh.models.training.trunk_head train --out runs/trunk --data data/trunk_train \\
-        --data data/trunk_train_r --data data/trunk_port --val data/trunk_val --steps 1500
+        --data data/trunk_train_r --data data/trunk_port --data data/trunk_zoom --val data/trunk_val \\
+        --steps 3000 --views 3
     python -m monodbh.models.training.trunk_head ship runs/trunk --val data/trunk_val
+    python -m monodbh.models.training.trunk_head eval data/trunk_val12 --tiles 0.5
 
 Training-only (imports torch and onnx); imported by nothing on the measuring path.
 """
