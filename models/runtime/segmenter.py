@@ -18,7 +18,7 @@ import numpy as np
 from monodbh.models.runtime.common import MonodbhError, OnnxPredictor
 
 __all__ = ["FEATURES_OUTPUT", "TRUNK_TILE_FRAC", "SegmentationResult", "panoptic_merge", "trunk_probability",
-           "tile_origins", "Segmenter"]
+           "tile_origins", "tile_boxes", "Segmenter"]
 
 #: the segmenter's per-pixel embedding (``(1, D, S/4, S/4)``), an output of files that feed a
 #: trunk head; computed in every run, copied out only when asked for
@@ -253,6 +253,22 @@ def tile_origins(length: int, side: int) -> list[int]:
     return out
 
 
+def tile_boxes(height: int, width: int, frac: float) -> list[tuple[int, int, int, int]]:
+    """``(y0, y1, x0, x1)`` of the square tiles of side ``frac`` x the long side of a
+    ``(height, width)`` photo, half a tile apart (:func:`tile_origins`), clipped to the photo.
+
+    Examples
+    --------
+    >>> tile_boxes(60, 100, 0.5)
+    [(0, 50, 0, 50), (0, 50, 25, 75), (0, 50, 50, 100), (10, 60, 0, 50), (10, 60, 25, 75), (10, 60, 50, 100)]
+    """
+    if not 0 < frac <= 1:
+        raise ValueError(f"tile fraction must be in (0, 1], got {frac}")
+    side = int(round(frac * max(height, width)))
+    return [(y0, min(height, y0 + side), x0, min(width, x0 + side))
+            for y0 in tile_origins(height, side) for x0 in tile_origins(width, side)]
+
+
 def trunk_probability(logits: np.ndarray, size: tuple[int, int]) -> np.ndarray:
     """Trunk logits ``(h, w)`` -> probability ``(H, W)`` float32 at ``size`` = (W, H), upsampled
     bilinearly in logit space (as the masks are).
@@ -363,17 +379,12 @@ class Segmenter(OnnxPredictor):
         if tile_frac is None:
             prob = trunk_probability(self.raw_with_trunk(rgb)[2], (W, H))
         else:
-            if not 0 < tile_frac <= 1:
-                raise ValueError(f"tile fraction must be in (0, 1], got {tile_frac}")
-            side = int(round(tile_frac * max(H, W)))
             total = np.zeros((H, W), np.float32)
             cover = np.zeros((H, W), np.float32)
-            for y0 in tile_origins(H, side):
-                for x0 in tile_origins(W, side):
-                    y1, x1 = min(H, y0 + side), min(W, x0 + side)
-                    tl = self.raw_with_trunk(np.ascontiguousarray(rgb[y0:y1, x0:x1]))[2]
-                    total[y0:y1, x0:x1] += trunk_probability(tl, (x1 - x0, y1 - y0))
-                    cover[y0:y1, x0:x1] += 1.0
+            for y0, y1, x0, x1 in tile_boxes(H, W, tile_frac):
+                tl = self.raw_with_trunk(np.ascontiguousarray(rgb[y0:y1, x0:x1]))[2]
+                total[y0:y1, x0:x1] += trunk_probability(tl, (x1 - x0, y1 - y0))
+                cover[y0:y1, x0:x1] += 1.0
             prob = total / cover
         size = size or (W, H)
         if (W, H) != tuple(size):

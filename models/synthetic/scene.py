@@ -588,7 +588,7 @@ def _look_up(scene: Scene, rng: np.random.Generator) -> None:
     main = scene.trees[0]
     cam = scene.camera
     W, H, K = cam.width, cam.height, cam.K
-    others = [t for t in scene.trees[1:]]
+    others = scene.trees[1:]
     for _attempt in range(50):
         d = float(rng.uniform(1.0, 5.0)) + main.r_bh
         az = rng.uniform(0, 2 * np.pi)

@@ -49,7 +49,7 @@ from typing import Optional, Sequence
 
 import numpy as np
 
-from monodbh.models.runtime.segmenter import tile_origins
+from monodbh.models.runtime.segmenter import tile_boxes, tile_origins
 
 __all__ = ["OUTLINES", "MIN_WIDTH_PX", "FOUND_IOU", "load_outlines", "rasterize", "score_trunk",
            "trunk_instances", "score_photo", "crop_around", "score_trunk_in_crop", "tile_origins", "segment_tiled",
@@ -231,18 +231,13 @@ def segment_tiled(rgb: np.ndarray, segmenter, frac: float, vote: float = 0.5):
     import cv2
     from types import SimpleNamespace
 
-    if not 0 < frac <= 1:
-        raise ValueError(f"tile fraction must be in (0, 1], got {frac}")
     H, W = rgb.shape[:2]
-    side = int(round(frac * max(H, W)))
     votes = np.zeros((H, W), np.float32)
     cover = np.zeros((H, W), np.float32)
-    for y0 in tile_origins(H, side):
-        for x0 in tile_origins(W, side):
-            y1, x1 = min(H, y0 + side), min(W, x0 + side)
-            r = segmenter.predict(np.ascontiguousarray(rgb[y0:y1, x0:x1]), size=(x1 - x0, y1 - y0))
-            votes[y0:y1, x0:x1] += r.semantic == r.tree_class
-            cover[y0:y1, x0:x1] += 1.0
+    for y0, y1, x0, x1 in tile_boxes(H, W, frac):
+        r = segmenter.predict(np.ascontiguousarray(rgb[y0:y1, x0:x1]), size=(x1 - x0, y1 - y0))
+        votes[y0:y1, x0:x1] += r.semantic == r.tree_class
+        cover[y0:y1, x0:x1] += 1.0
     whole = segmenter.predict(rgb, size=(W, H))
     tree = votes >= vote * cover
     _, inst = cv2.connectedComponents(tree.astype(np.uint8), connectivity=8)
