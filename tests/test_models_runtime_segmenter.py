@@ -76,3 +76,23 @@ def test_segmenter_from_manifest_entry(tiny_model, tmp_path, monkeypatch):
     monkeypatch.setattr(common, "MODELS_DIR", tiny_model.parent)
     seg = Segmenter(manifest={"models": {"segmenter": {"file": tiny_model.name}}})
     assert seg.spec["kind"] == "segmenter" and seg.input_shape("image") == (1, 3, 64, 64)
+
+
+def test_tile_weights_cross_fade_without_seams():
+    from monodbh.models.runtime.segmenter import tile_boxes, tile_weight
+    H, W = 90, 120                                   # tiles of 60 px, 30 apart: exact halves
+    total = np.zeros((H, W), np.float32)
+    for box in tile_boxes(H, W, 0.5):
+        y0, y1, x0, x1 = box
+        w = tile_weight(box, H, W)
+        assert w.shape == (y1 - y0, x1 - x0) and w.min() > 0 and w.max() <= 1.0
+        total[y0:y1, x0:x1] += w
+    # where tiles overlap by half, the weights add up to one: a constant map blends to itself
+    # and each tile fades out where its neighbour takes over, with no step at a tile's end
+    assert np.allclose(total, 1.0, atol=1e-5)
+    blended = np.zeros((H, W), np.float32)
+    for i, box in enumerate(tile_boxes(H, W, 0.5)):  # each tile says a different constant
+        y0, y1, x0, x1 = box
+        blended[y0:y1, x0:x1] += tile_weight(box, H, W) * i
+    blended /= total
+    assert np.abs(np.diff(blended, axis=1)).max() < 0.2 and np.abs(np.diff(blended, axis=0)).max() < 0.2

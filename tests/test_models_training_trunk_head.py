@@ -110,6 +110,28 @@ def test_tile_views_are_square_crops_whose_label_stays_on_their_pixels():
     assert all(np.array_equal(a[0], b[0]) for a, b in zip(views, again))
 
 
+def test_turned_tile_views_keep_the_label_on_their_pixels_and_leave_upright_runs_unchanged():
+    # a vertical stem whose red channel is its label: a turned crop's label must follow its pixels
+    H, W = 90, 120
+    stem = np.zeros((H, W), bool)
+    stem[:, 50:62] = True
+    rgb = np.zeros((H, W, 3), np.uint8)
+    rgb[..., 0] = stem * 200
+    views = th.tile_views(rgb, stem, 40, np.random.default_rng(5), tilt_deg=60)
+    turned = 0
+    for crop, lab in views:
+        assert crop.shape[:2] == lab.shape and lab.dtype == bool
+        red = crop[..., 0] > 100
+        assert np.mean(red == lab) > 0.97 or np.mean((crop[..., 0] > crop[..., 0].mean()) == lab) > 0.9
+        cols = np.nonzero(lab.any(0))[0]
+        # an upright stem keeps 12 columns; a turned one spreads over many more
+        turned += len(cols) > 16 and lab.sum() > 0
+    assert 8 < turned < 32                                       # about half of the crops turned
+    upright = th.tile_views(rgb, stem, 40, np.random.default_rng(3))
+    again = th.tile_views(rgb, stem, 40, np.random.default_rng(3), tilt_deg=0)
+    assert all(np.array_equal(a[0], b[0]) and np.array_equal(a[1], b[1]) for a, b in zip(upright, again))
+
+
 def test_jittered_photo_keeps_shape_and_order_of_brightness():
     rng = np.random.default_rng(0)
     ramp = np.tile(np.linspace(0, 255, 64).astype(np.uint8)[None, :, None], (8, 1, 3))

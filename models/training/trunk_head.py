@@ -120,27 +120,48 @@ def jitter_photo(rgb: np.ndarray, rng: np.random.Generator) -> np.ndarray:
 
 
 def tile_views(rgb: np.ndarray, stem: np.ndarray, n: int, rng: np.random.Generator,
-               frac: tuple[float, float] = (0.4, 0.75)) -> list[tuple[np.ndarray, np.ndarray]]:
+               frac: tuple[float, float] = (0.4, 0.75), tilt_deg: float = 0.0) -> list[tuple[np.ndarray, np.ndarray]]:
     """``n`` square crops ``(rgb (s, s, 3), stem (s, s))`` of side ``frac`` x the photo's long side
     (at most its short side), at random places, each photometrically jittered
     (:func:`jitter_photo`) on half: the tiles that ``Segmenter.trunk_map`` feeds the head, where
-    a trunk is twice as wide relative to the input as in the whole photo."""
+    a trunk is twice as wide relative to the input as in the whole photo. ``tilt_deg``: half of
+    the crops are turned about their centre by an angle drawn in +-``tilt_deg`` (the photo
+    mirrored past its border), as a leaning stem or a tilted camera shows a trunk; 0 draws
+    nothing more, so the crops are those of a run without it.
+
+    Examples
+    --------
+    >>> rgb = np.zeros((60, 80, 3), np.uint8); stem = np.zeros((60, 80), bool); stem[:, 38:42] = True
+    >>> views = tile_views(rgb, stem, 4, np.random.default_rng(0), tilt_deg=45)
+    >>> [v[0].shape[:2] == v[1].shape for v in views]
+    [True, True, True, True]
+    """
+    import cv2
     H, W = rgb.shape[:2]
     out = []
     for _ in range(n):
         s = int(round(min(rng.uniform(*frac) * max(H, W), min(H, W))))
         y0, x0 = int(rng.integers(0, H - s + 1)), int(rng.integers(0, W - s + 1))
-        crop = np.ascontiguousarray(rgb[y0:y0 + s, x0:x0 + s])
-        out.append((jitter_photo(crop, rng) if rng.random() < 0.5 else crop, stem[y0:y0 + s, x0:x0 + s]))
+        jitter = rng.random() < 0.5
+        if tilt_deg and rng.random() < 0.5:
+            rot = cv2.getRotationMatrix2D((x0 + (s - 1) / 2, y0 + (s - 1) / 2), rng.uniform(-tilt_deg, tilt_deg), 1.0)
+            rot[:, 2] -= (x0, y0)
+            crop = cv2.warpAffine(rgb, rot, (s, s), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT_101)
+            label = cv2.warpAffine(stem.astype(np.uint8), rot, (s, s), flags=cv2.INTER_NEAREST,
+                                   borderMode=cv2.BORDER_REFLECT_101).astype(bool)
+        else:
+            crop, label = np.ascontiguousarray(rgb[y0:y0 + s, x0:x0 + s]), stem[y0:y0 + s, x0:x0 + s]
+        out.append((jitter_photo(crop, rng) if jitter else crop, label))
     return out
 
 
 def load_features(folder: str | os.PathLike, extractor: FeatureExtractor,
-                  cache_dir: str | os.PathLike, views: int = 0, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+                  cache_dir: str | os.PathLike, views: int = 0, seed: int = 0,
+                  tilt_deg: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """Features ``(N (1 + views), D, h, w)`` float16 and labels ``(N (1 + views), 256, 256)``
     uint8 of a ``dbh synth`` folder's N photos, cached in ``cache_dir`` per folder, segmenter
     file and views: each whole photo, then its ``views`` tile-like crops (:func:`tile_views`,
-    drawn from ``seed`` and the sample's index).
+    drawn from ``seed`` and the sample's index; half of them turned by up to ``tilt_deg``).
 
     Raises
     ------
@@ -149,7 +170,7 @@ def load_features(folder: str | os.PathLike, extractor: FeatureExtractor,
     """
     from monodbh.models.synthetic.io import list_samples, read_sample
     folder = Path(folder)
-    tag = f"_v{views}s{seed}" if views else ""
+    tag = (f"_v{views}s{seed}" + (f"t{tilt_deg:g}" if tilt_deg else "")) if views else ""
     cache = Path(cache_dir) / f"{folder.name}_{extractor.sha256[:12]}{tag}.npz"
     if cache.exists():
         with np.load(cache) as z:
@@ -161,7 +182,7 @@ def load_features(folder: str | os.PathLike, extractor: FeatureExtractor,
             raise ValueError(f"{folder}: sample {i:06d} has no 'stem' label; render it again with dbh synth")
         pairs = [(s["rgb"], s["stem"])]
         if views:
-            pairs += tile_views(s["rgb"], s["stem"], views, np.random.default_rng([seed, i]))
+            pairs += tile_views(s["rgb"], s["stem"], views, np.random.default_rng([seed, i]), tilt_deg=tilt_deg)
         for rgb, stem in pairs:
             feats.append(extractor(rgb).astype(np.float16))
             labels.append(_stem_label(stem))
@@ -211,7 +232,7 @@ def train(out: str | os.PathLike, data: Sequence[str | os.PathLike], val: Sequen
           steps: int = 1500, batch: int = 16, lr: float = 2e-3, seed: int = 0,
           segmenter: str | os.PathLike | None = None, threads: int = 2,
           checkpoint_every: int = 250, resume: bool = False, stop_at: int | None = None,
-          head_cfg=None, views: int = 0, log=print) -> dict[str, Any]:
+          head_cfg=None, views: int = 0, tilt_deg: float = 0.0, log=print) -> dict[str, Any]:
     """Train a head on the segmenter's features of ``data`` (resumable from ``out/checkpoint.pt``).
 
     Writes ``out/config.json``, ``out/checkpoint.pt`` (every ``checkpoint_every`` steps and at the
@@ -220,7 +241,8 @@ def train(out: str | os.PathLike, data: Sequence[str | os.PathLike], val: Sequen
     checkpointed, after this many steps (``{}`` returned; ``resume=True`` goes on).
     ``head_cfg``: a :class:`~monodbh.models.modeling.trunk_head.TrunkHeadConfig` (default the
     shipped size). ``views``: tile-like crops per training photo besides the whole photo
-    (:func:`tile_views`; validation stays on whole photos).
+    (:func:`tile_views`; validation stays on whole photos); ``tilt_deg``: half of those crops
+    turned by up to that angle.
     """
     import torch
     from torch.nn import functional as TF
@@ -232,12 +254,14 @@ def train(out: str | os.PathLike, data: Sequence[str | os.PathLike], val: Sequen
     out.mkdir(parents=True, exist_ok=True)
     ext = FeatureExtractor(segmenter, threads)
     cache = out / "features"
-    parts = [load_features(d, ext, cache, views, seed) for d in data]
+    parts = [load_features(d, ext, cache, views, seed, tilt_deg) for d in data]
     F = np.concatenate([p[0] for p in parts])
     Y = np.concatenate([p[1] for p in parts])
     cfg = {"data": [str(d) for d in data], "val": [str(v) for v in val], "steps": steps, "batch": batch,
            "lr": lr, "seed": seed, "segmenter_sha256": ext.sha256, "photos": int(len(F)) // (1 + views), "views": views,
            "head": {"in_ch": head_cfg.in_ch, "ch": head_cfg.ch, "dilations": list(head_cfg.dilations)}}
+    if tilt_deg:
+        cfg["tilt_deg"] = tilt_deg
     torch.manual_seed(seed)
     head = TrunkHead(head_cfg)
     opt = torch.optim.AdamW(head.parameters(), lr=lr, weight_decay=1e-4)
@@ -428,9 +452,12 @@ def ship(run: str | os.PathLike, val: Sequence[str | os.PathLike], models_dir: s
             em["models"]["segmenter"] = new_sha
     ext = FeatureExtractor(seg_path)
     cache = run / "features"
-    calib = load_features(cfg["data"][0], ext, cache, cfg.get("views", 0), cfg.get("seed", 0))[0][:n_calib]
+    calib = load_features(cfg["data"][0], ext, cache, cfg.get("views", 0), cfg.get("seed", 0),
+                          cfg.get("tilt_deg", 0.0))[0][:n_calib]
     info = {"data": [Path(d).name for d in cfg["data"]], "steps": cfg["steps"], "photos": cfg["photos"],
             "views": cfg.get("views", 0)}
+    if cfg.get("tilt_deg"):
+        info["tilt_deg"] = cfg["tilt_deg"]
     out = models_dir / "trunk_head_int8.onnx"
     export_head(head, out, calib, info)
     scores = {Path(v).name: {k: (round(x, 4) if isinstance(x, float) else x) for k, x in
@@ -463,6 +490,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     t.add_argument("--threads", type=int, default=2)
     t.add_argument("--views", type=int, default=0,
                    help="tile-like crops per training photo besides the whole photo (default 0)")
+    t.add_argument("--tilt", type=float, default=0.0, metavar="DEG",
+                   help="turn half of the crops by an angle within +-DEG (default 0: upright)")
     t.add_argument("--resume", action="store_true")
     s = sub.add_parser("ship", help="attach a trained head to the shipped segmenter")
     s.add_argument("run", type=Path)
@@ -477,7 +506,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     a = ap.parse_args(argv)
     if a.cmd == "train":
         scores = train(a.out, a.data, a.val, a.steps, a.batch, a.lr, a.seed, threads=a.threads, resume=a.resume,
-                       views=a.views)
+                       views=a.views, tilt_deg=a.tilt)
         print(json.dumps(scores, indent=1))
     elif a.cmd == "ship":
         print(json.dumps(ship(a.run, a.val), indent=1))

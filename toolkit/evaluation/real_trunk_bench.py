@@ -26,7 +26,7 @@ of the whole photo (:func:`score_trunk_in_crop`): how much a zoomed second pass 
 ``--trunk`` scores the segmenter's trunk head instead of its "tree" instances: the trunk pixels
 are those whose trunk probability reaches the segmenter's ``trunk_threshold``, the instances
 their connected parts (8-neighbour), so a trunk is scored against the stem the head found, not
-against a whole tree with its crown; with ``--tiles F``, the mean of the head's probability over
+against a whole tree with its crown; with ``--tiles F``, the head's probability blended over
 the tiles (:meth:`~monodbh.models.runtime.segmenter.Segmenter.trunk_map`), without: one pass. ``--tiles F`` segments the whole photo as overlapping square tiles of side ``F`` x its long side
 (half a tile apart, :func:`segment_tiled`), without knowing where the trunks are: a pixel is
 "tree" where at least half the tiles that hold it say so, and the instances are the connected
