@@ -230,6 +230,8 @@ def test_the_shipped_head_is_scored_on_folders_with_the_stem_label_only(tmp_path
     assert r["photos"] == 1 and 0.3 < r["iou"] <= 1 and r["threshold"] == th.THRESHOLD
     t = th.score_shipped(tmp_path / "new", tiles=0.5)              # dbh reconstruct's map, full size
     assert t["tiles"] == 0.5 and 0.3 < t["iou"] <= 1 and t["iou"] != r["iou"]
+    lo = th.score_shipped(tmp_path / "new", threshold=0.2)       # more pixels called trunk
+    assert lo["threshold"] == 0.2 and lo["recall"] >= r["recall"] and lo["precision"] <= r["precision"]
     with pytest.raises(ValueError, match="scores the shipped head only"):
         th._eval_cmd([tmp_path / "new"], tmp_path, tiles=0.5)
     old = tmp_path / "old"

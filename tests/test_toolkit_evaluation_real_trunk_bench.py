@@ -218,3 +218,26 @@ def test_the_shipped_trunk_head_finds_real_trunks_the_tree_instances_miss(shared
     assert len(trees) == len(trunks) == 2
     assert all(r["iou"] < rb.FOUND_IOU for r in trees)
     assert all(r["iou"] >= 0.65 for r in trunks)
+
+
+class _TrunkSegmenter(_CropSegmenter):
+    """A trunk head whose probability is 0.4 on the dark pixels (an unsure head) and 0 elsewhere."""
+    trunk_threshold = 0.5
+
+    def predict(self, rgb, size, trunk=False):
+        r = super().predict(rgb, size)
+        r.trunk_prob = np.where(rgb[..., 0] < 50, 0.4, 0.0).astype(np.float32)
+        return r
+
+
+def test_the_trunk_threshold_can_be_set_for_scoring_only():
+    rgb = np.full((120, 80, 3), 200, np.uint8)
+    rgb[10:110, 30:55] = 10                               # a 25 px trunk the head is unsure of
+    entry = {"trunks": [{"polygon": [[30, 10], [54, 10], [54, 109], [30, 109]]}]}
+    seg = _TrunkSegmenter()
+    assert rb.score_photo(rgb, entry, seg, trunk=True)[0][0]["iou"] == 0.0       # the head's 0.5
+    assert rb.score_photo(rgb, entry, seg, trunk=True, threshold=0.35)[0][0]["iou"] == pytest.approx(1.0)
+    assert seg.trunk_threshold == 0.5
+    for bad in (["--threshold", "0.3"], ["--trunk", "--threshold", "1.5"]):
+        with pytest.raises(SystemExit):
+            rb.main(["unused_folder", *bad])

@@ -503,7 +503,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     e.add_argument("--tiles", type=float, metavar="F",
                    help="the shipped head's trunk map over tiles of side F x the photo's long side "
                         "(Segmenter.trunk_map, dbh reconstruct's: 0.5), scored at the photo's resolution")
+    e.add_argument("--threshold", type=float, metavar="P",
+                   help="score the run's or the shipped head's map from this probability on (default 0.5)")
     a = ap.parse_args(argv)
+    if a.cmd == "eval" and a.threshold is not None and not 0 < a.threshold < 1:
+        ap.error(f"--threshold must be a probability in (0, 1), got {a.threshold}")
     if a.cmd == "train":
         scores = train(a.out, a.data, a.val, a.steps, a.batch, a.lr, a.seed, threads=a.threads, resume=a.resume,
                        views=a.views, tilt_deg=a.tilt)
@@ -511,23 +515,26 @@ def main(argv: Sequence[str] | None = None) -> int:
     elif a.cmd == "ship":
         print(json.dumps(ship(a.run, a.val), indent=1))
     else:
-        print(json.dumps(_eval_cmd(a.folders, a.run, a.tiles), indent=1))
+        print(json.dumps(_eval_cmd(a.folders, a.run, a.tiles, a.threshold), indent=1))
     return 0
 
 
 def score_shipped(folder: str | os.PathLike, n: int | None = None,
-                  models_dir: str | os.PathLike | None = None, tiles: float | None = None) -> dict[str, Any]:
+                  models_dir: str | os.PathLike | None = None, tiles: float | None = None,
+                  threshold: float | None = None) -> dict[str, Any]:
     """The shipped trunk head (as the runtime runs it: int8, on the segmenter's ``mask_features``)
     on the first ``n`` samples of a ``dbh synth`` folder: :func:`evaluate`'s scores, or ``{}``
     where the folder was rendered without the ``stem`` label. With ``tiles``, the trunk map
     ``Segmenter.trunk_map(rgb, tile_frac=tiles)`` (``dbh reconstruct``'s) against the label at the
-    photo's own resolution instead of one pass at the segmenter's input side."""
+    photo's own resolution instead of one pass at the segmenter's input side. ``threshold``: trunk
+    pixels from this probability on (default the head's own)."""
     from monodbh.models.runtime.common import MODELS_DIR, load_manifest
     from monodbh.models.runtime.segmenter import Segmenter, trunk_probability
     from monodbh.models.synthetic.io import list_samples, read_sample
     mdir = Path(models_dir or MODELS_DIR)
     models = load_manifest(mdir / "manifest.json")["models"]
     seg = Segmenter(mdir / models["segmenter"]["file"], trunk_head=mdir / models["trunk_head"]["file"])
+    th = seg.trunk_threshold if threshold is None else threshold
     idx = list_samples(folder)[:n]
     if not idx or "stem" not in read_sample(folder, idx[0]):
         return {}
@@ -535,26 +542,28 @@ def score_shipped(folder: str | os.PathLike, n: int | None = None,
         for i in idx:
             s = read_sample(folder, i)
             if tiles:
-                yield seg.trunk_map(s["rgb"], None, tiles) >= seg.trunk_threshold, s["stem"].astype(bool)
+                yield seg.trunk_map(s["rgb"], None, tiles) >= th, s["stem"].astype(bool)
                 continue
             tl = seg.raw_with_trunk(s["rgb"])[2]
-            yield (trunk_probability(tl, (LABEL_SIDE, LABEL_SIDE)) >= seg.trunk_threshold,
+            yield (trunk_probability(tl, (LABEL_SIDE, LABEL_SIDE)) >= th,
                    _stem_label(s["stem"]) >= 128)
-    return {**_pixel_scores(masks(), seg.trunk_threshold), **({"tiles": tiles} if tiles else {})}
+    return {**_pixel_scores(masks(), th), **({"tiles": tiles} if tiles else {})}
 
 
-def _eval_cmd(folders: Sequence[Path], run: Path | None, tiles: float | None = None) -> dict[str, Any]:
+def _eval_cmd(folders: Sequence[Path], run: Path | None, tiles: float | None = None,
+              threshold: float | None = None) -> dict[str, Any]:
     """Scores of a run's head (on the shipped segmenter's features) or of the shipped head (in
-    ``tiles`` where given)."""
+    ``tiles`` where given), at ``threshold`` (default the head's)."""
     if run is not None and tiles:
         raise ValueError("--tiles scores the shipped head only: ship the run first, or leave --tiles out")
     if run is not None:
         ext = FeatureExtractor()
         head = _load_head(run)
-        return {str(f): evaluate(head, *load_features(f, ext, run / "features")) for f in folders}
+        t = THRESHOLD if threshold is None else threshold
+        return {str(f): evaluate(head, *load_features(f, ext, run / "features"), threshold=t) for f in folders}
     out = {}
     for f in folders:
-        out[str(f)] = score_shipped(f, tiles=tiles)
+        out[str(f)] = score_shipped(f, tiles=tiles, threshold=threshold)
         if not out[str(f)]:
             raise ValueError(f"{f}: no samples with a 'stem' label; render it again with dbh synth")
     return out

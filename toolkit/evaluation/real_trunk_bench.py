@@ -35,7 +35,7 @@ parts of that mask (so touching trunks and crowns merge, which the IoU counts).
 Usage::
 
     python -m monodbh.toolkit.evaluation.real_trunk_bench ../shared/data/real_trees [--draw runs/real_trunks] [--json F]
-        [--model OTHER_SEGMENTER.onnx] [--crop 0.4 | [--tiles 0.3] [--trunk]]
+        [--model OTHER_SEGMENTER.onnx] [--crop 0.4 | [--tiles 0.3] [--trunk [--threshold P]]]
 
 Imported by nothing (a command); imports the segmenter's runtime and ``monodbh.calib``.
 """
@@ -162,18 +162,18 @@ def trunk_instances(trunk_prob: np.ndarray, threshold: float) -> tuple[np.ndarra
     return mask, inst.astype(np.int32)
 
 
-def score_photo(rgb: np.ndarray, entry: dict, segmenter,
-                tiles: Optional[float] = None, trunk: bool = False) -> tuple[list[dict], object]:
+def score_photo(rgb: np.ndarray, entry: dict, segmenter, tiles: Optional[float] = None, trunk: bool = False,
+                threshold: Optional[float] = None) -> tuple[list[dict], object]:
     """Segment ``rgb`` (H, W, 3) (whole, or with ``tiles`` by :func:`segment_tiled`) and score
     each outlined trunk of ``entry`` (all widths; :func:`summarise` keeps the wide ones); with
-    ``trunk``, against the trunk head's instances (:func:`trunk_instances`).
-    Returns ``(scores, segmentation)``."""
+    ``trunk``, against the trunk head's instances (:func:`trunk_instances`) at ``threshold``
+    (default the head's own). Returns ``(scores, segmentation)``."""
     H, W = rgb.shape[:2]
     if trunk:                                   # one pass gives the map with the segmentation
         seg = segmenter.predict(rgb, size=(W, H), trunk=not tiles)
         if tiles:
             seg.trunk_prob = segmenter.trunk_map(rgb, (W, H), tiles)
-        tree, inst = trunk_instances(seg.trunk_prob, segmenter.trunk_threshold)
+        tree, inst = trunk_instances(seg.trunk_prob, segmenter.trunk_threshold if threshold is None else threshold)
     else:
         seg = segment_tiled(rgb, segmenter, tiles) if tiles else segmenter.predict(rgb, size=(W, H))
         tree, inst = seg.semantic == seg.tree_class, seg.instance
@@ -289,7 +289,8 @@ def _draw(rgb: np.ndarray, entry: dict, scores: Sequence[dict], seg, path: Path,
 
 
 def run(folder: Path, outlines: dict, draw: Optional[Path] = None, segmenter=None,
-        crop: Optional[float] = None, tiles: Optional[float] = None, trunk: bool = False) -> list[dict]:
+        crop: Optional[float] = None, tiles: Optional[float] = None, trunk: bool = False,
+        threshold: Optional[float] = None) -> list[dict]:
     """Score every outlined photo of ``folder``; a row per trunk (``photo`` added); with
     ``crop``, each trunk in its own crop (:func:`score_trunk_in_crop`, no drawing); with
     ``tiles``, the photo segmented in tiles (:func:`segment_tiled`); with ``trunk``, the trunk
@@ -317,10 +318,11 @@ def run(folder: Path, outlines: dict, draw: Optional[Path] = None, segmenter=Non
                       **score_trunk_in_crop(rgb, tr["polygon"], seg_net, crop)}
                      for i, tr in enumerate(entry["trunks"])]
             continue
-        scores, seg = score_photo(rgb, entry, seg_net, tiles, trunk)
+        scores, seg = score_photo(rgb, entry, seg_net, tiles, trunk, threshold)
         rows += [{"photo": name, **s} for s in scores]
         if draw is not None:
-            mask = trunk_instances(seg.trunk_prob, seg_net.trunk_threshold)[0] if trunk else None
+            t = seg_net.trunk_threshold if threshold is None else threshold
+            mask = trunk_instances(seg.trunk_prob, t)[0] if trunk else None
             _draw(rgb, entry, scores, seg, Path(draw) / f"{p.stem}_outlines.png", mask)
     return rows
 
@@ -339,7 +341,11 @@ def main(argv=None) -> int:
                     help="segment the whole photo in overlapping square tiles of side F x its long side")
     ap.add_argument("--trunk", action="store_true",
                     help="score the segmenter's trunk head (its trunks) instead of its tree instances")
+    ap.add_argument("--threshold", type=float, metavar="P",
+                    help="with --trunk: trunk pixels from this probability on (default the head's, 0.5)")
     a = ap.parse_args(argv)
+    if a.threshold is not None and not (a.trunk and 0 < a.threshold < 1):
+        ap.error("--threshold needs --trunk and a probability in (0, 1)")
     if a.crop is not None and (a.tiles is not None or a.trunk):
         ap.error("--crop excludes --tiles and --trunk")
     for flag, v in (("--crop", a.crop), ("--tiles", a.tiles)):
@@ -355,7 +361,7 @@ def main(argv=None) -> int:
         if not seg.has_trunk:
             ap.error(f"{seg.path}: this segmenter has no trunk head")
     rows = run(a.folder, load_outlines(a.outlines), a.draw, segmenter=seg, crop=a.crop, tiles=a.tiles,
-               trunk=a.trunk)
+               trunk=a.trunk, threshold=a.threshold)
     print("| photo | trunks >= 20 px | mean IoU | found (IoU >= 0.5) | local IoU | found by it | pixel recall |\n"
           "|---|---|---|---|---|---|---|")
     for name in sorted({r["photo"] for r in rows}):
