@@ -277,8 +277,9 @@ def tile_weight(box: tuple[int, int, int, int], height: int, width: int) -> np.n
     """Blending weight ``(y1 - y0, x1 - x0)`` float32 of a tile ``box`` = ``(y0, y1, x0, x1)``
     of a ``(height, width)`` photo (:func:`tile_boxes`): a tent rising from the tile's border to
     its middle along each axis, flat on a side that lies on the photo's border (no other tile
-    covers it), never below 1e-3 along an axis. Tiles half a tile apart cross-fade linearly, so the blend has
-    no seams where a tile ends, and each pixel leans on the tile that sees most around it.
+    covers it), never below 1e-3 along an axis. Tiles half a tile apart cross-fade linearly, so
+    the blend has no seams where a tile ends, and each pixel leans on the tile that sees most
+    around it.
 
     Examples
     --------
@@ -413,7 +414,7 @@ class Segmenter(OnnxPredictor):
             for box in tile_boxes(H, W, tile_frac):
                 y0, y1, x0, x1 = box
                 tl = self.raw_with_trunk(np.ascontiguousarray(rgb[y0:y1, x0:x1]))[2]
-                w = tile_weight(box, H, W) if TRUNK_TILE_BLEND == "tent" else 1.0
+                w = {"tent": tile_weight, "mean": lambda *_: 1.0}[TRUNK_TILE_BLEND](box, H, W)
                 total[y0:y1, x0:x1] += w * trunk_probability(tl, (x1 - x0, y1 - y0))
                 cover[y0:y1, x0:x1] += w
             prob = total / cover
