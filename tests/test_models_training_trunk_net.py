@@ -61,3 +61,39 @@ def test_the_tiled_map_covers_the_photo_and_matches_one_pass_in_a_single_tile():
 def test_eval_refuses_a_tile_fraction_out_of_range(tmp_path):
     with pytest.raises(SystemExit):
         tn.main(["eval", str(tmp_path), "--tiles", "1.5"])
+
+
+def test_ship_lists_the_network_and_the_runtime_reads_its_map(tmp_path):
+    pytest.importorskip("embreex")
+    import hashlib
+    import json
+    import shutil
+
+    from monodbh.models.runtime.common import MODELS_DIR
+    from monodbh.models.runtime.trunk_net import TrunkNet as RuntimeTrunkNet
+    from monodbh.models.synthetic import generate_sample
+    from monodbh.models.synthetic.io import read_sample, write_sample
+    data = tmp_path / "data"
+    for i in range(2):
+        write_sample(data, i, generate_sample(11, i, (128, 96)))
+    run = tmp_path / "run"
+    run.mkdir()
+    torch.manual_seed(0)
+    torch.save(TrunkNetHead(TrunkNetConfig(lat=4, ch=8)).state_dict(), run / "head.pt")
+    (run / "config.json").write_text(json.dumps({"data": ["x"], "steps": 1, "photos": 2, "views": 0, "pretrained": False,
+                                                 "head": {"lat": 4, "ch": 8, "dilations": [1, 2, 4, 8]}}))
+    mdir = tmp_path / "models"
+    mdir.mkdir()
+    shutil.copy(MODELS_DIR / "manifest.json", mdir)
+    out = tn.ship(run, data, [data], models_dir=mdir, n_calib=2)
+    entry = json.loads((mdir / "manifest.json").read_text())["models"]["trunk_net"]
+    path = mdir / entry["file"]
+    assert entry["file"] == "trunk_net_int8.onnx" and entry["spec"]["kind"] == "trunk_net"
+    assert entry["sha256"] == hashlib.sha256(path.read_bytes()).hexdigest() and entry["precision"] == "int8"
+    assert set(out["validation"]) == {"data"} and out["validation"]["data"]["photos"] == 2
+    net = RuntimeTrunkNet(path)
+    rgb = read_sample(data, 0)["rgb"]
+    assert net.logits(rgb).shape == (64, 64) and net.threshold == 0.5
+    full = net.trunk_map(rgb)
+    assert full.shape == rgb.shape[:2] and 0 <= full.min() and full.max() <= 1
+    assert net.trunk_map(rgb, size=(64, 48), tile_frac=None).shape == (48, 64)

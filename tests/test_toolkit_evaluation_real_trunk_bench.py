@@ -241,3 +241,23 @@ def test_the_trunk_threshold_can_be_set_for_scoring_only():
     for bad in (["--threshold", "0.3"], ["--trunk", "--threshold", "1.5"]):
         with pytest.raises(SystemExit):
             rb.main(["unused_folder", *bad])
+
+
+def test_the_shipped_trunk_network_finds_a_wide_flared_trunk_the_head_half_misses(shared_data, tmp_path):
+    # photo 07 (an American elm, 92 px wide with a root flare): the trunk head in tiles reads 0.60,
+    # the trunk network 0.89 when shipped; --net needs --trunk
+    import shutil
+
+    from monodbh.models.runtime.segmenter import Segmenter
+    from monodbh.models.runtime.trunk_net import TrunkNet
+    name = "07_american_elm_hatfield.jpg"
+    src = shared_data / "real_trees" / name
+    if not src.exists():
+        pytest.skip(f"{src}: real photo not found")
+    shutil.copy(src, tmp_path / name)
+    sub = {"photos": {name: rb.load_outlines()["photos"][name]}}
+    seg = rb.WithTrunkNet(Segmenter(trunk_head=None), TrunkNet())
+    rows = rb.run(tmp_path, sub, segmenter=seg, trunk=True, tiles=0.5)
+    assert len(rows) == 1 and rows[0]["iou"] >= 0.8
+    with pytest.raises(SystemExit):
+        rb.main([str(tmp_path), "--net"])

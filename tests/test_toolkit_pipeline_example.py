@@ -77,12 +77,17 @@ def test_idle_thread_spinning_comes_from_the_environment(monkeypatch):
     assert MeasureConfig().ort_spin is False
 
 
-def test_the_reconstructed_clouds_flag_trunk_points_and_the_measurement_is_unchanged(session):
-    """With a segmenter that has the trunk head, ``reconstruct_photo`` flags each point on a
-    trunk; asking the head for it leaves the measurement exactly as ``measure_photo`` gives it."""
+@pytest.mark.parametrize("source", ["trunk_net", "trunk_head"])
+def test_the_reconstructed_clouds_flag_trunk_points_and_the_measurement_is_unchanged(session, source, monkeypatch):
+    """``reconstruct_photo`` flags each point on a trunk, from the trunk network where it is
+    shipped, else from the segmenter's trunk head; asking for it leaves the measurement exactly
+    as ``measure_photo`` gives it."""
     cam = load_camera(EX / "cam.yaml")
-    if not session.segmenter.has_trunk:
-        pytest.skip("the shipped segmenter has no trunk head")
+    assert session.trunk_net is not None and session.segmenter.has_trunk      # both shipped
+    if source == "trunk_head":
+        monkeypatch.setattr(session, "_trunk_net", None)
+        monkeypatch.setattr(session, "_trunk_net_file", None)
+        assert session.trunk_net is None
     plain = pl.measure_photo(str(EX / "example.jpg"), cam, session=session)
     res, cloud = pl.reconstruct_photo(str(EX / "example.jpg"), cam, session=session)
     assert res.dbh_cm == plain.dbh_cm and res.distance_m == plain.distance_m and res.flags == plain.flags

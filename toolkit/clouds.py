@@ -44,7 +44,7 @@ def scene_cloud(img, depth, K, instance, tid, step: int = 4, max_depth_m: float 
     instance : (H, W) tree instance ids; tid : the measured tree's id.
     step : pixel subsampling; max_depth_m : farther points are dropped.
     trunk : (H, W) bool, optional
-        Trunk pixels (the segmenter's trunk head): the points' ``trunk`` flag.
+        Trunk pixels (the trunk network's, else the segmenter's trunk head's): the points' ``trunk`` flag.
     """
     pts = unproject_depth(depth, K, step)
     col = img[::step, ::step]
@@ -64,7 +64,7 @@ def tree_cloud(img, cam, z1, z2, tree_mask, tid, trunk=None) -> PointCloud:
     z1, z2 : (H, W) float32 front / back surface depth (0 outside the tree's crop).
     tree_mask : (H, W) bool; tid : the tree's id.
     trunk : (H, W) bool, optional
-        Trunk pixels (the segmenter's trunk head): the points' ``trunk`` flag.
+        Trunk pixels (the trunk network's, else the segmenter's trunk head's): the points' ``trunk`` flag.
     """
     ys, xs = np.nonzero(tree_mask & (z1 > 0))
     if len(xs) == 0:

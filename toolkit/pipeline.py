@@ -67,8 +67,19 @@ class Session:
         self.rank_network = nets.rank
         self.distance_calibration = nets.distance_calibration
         self.error_model_stale = nets.error_model_stale
+        self._trunk_net, self._trunk_net_file = None, nets.trunk_net
+        self._threads, self._spin = threads, self.config.ort_spin
         self._pool = None
         self.load_ms = 1000 * (time.perf_counter() - t0)
+
+    @property
+    def trunk_net(self):
+        """The trunk network (:class:`~monodbh.models.runtime.trunk_net.TrunkNet`, loaded on
+        first use), or None where none is shipped."""
+        if self._trunk_net is None and self._trunk_net_file is not None:
+            from ..models.runtime.trunk_net import TrunkNet
+            self._trunk_net = TrunkNet(self._trunk_net_file, threads=self._threads, spin=self._spin)
+        return self._trunk_net
 
     def background(self, fn, *args) -> "_Job":
         """Run ``fn(*args)`` on the session's one background thread; ``.result()`` waits for it
@@ -498,11 +509,16 @@ def _perception(frame: WorkFrame, choice: RopeChoice, stem: _Stem, ruler, ground
 
 
 def _trunk_pixels(sess: Session, frame: WorkFrame, req: _Request):
-    """The working image's trunk pixels (H, W) bool for the clouds (the segmenter's trunk head,
-    in tiles: :meth:`~monodbh.models.runtime.segmenter.Segmenter.trunk_map`), None where no
-    cloud is asked for or no head is shipped."""
+    """The working image's trunk pixels (H, W) bool for the clouds, from the trunk network in
+    tiles (:meth:`~monodbh.models.runtime.trunk_net.TrunkNet.trunk_map`), else the segmenter's
+    trunk head (:meth:`~monodbh.models.runtime.segmenter.Segmenter.trunk_map`); None where no
+    cloud is asked for or neither is shipped."""
+    if not req.want_cloud:
+        return None
+    if sess.trunk_net is not None:
+        return sess.trunk_net.trunk_map(frame.image) >= sess.trunk_net.threshold
     seg = sess.segmenter
-    if not req.want_cloud or not getattr(seg, "has_trunk", False):
+    if not getattr(seg, "has_trunk", False):
         return None
     return seg.trunk_map(frame.image) >= seg.trunk_threshold
 

@@ -33,8 +33,8 @@ class PointCloud:
     tree_id : (N,) int32, 0 = not a tree (ground, sky-free background), k = tree instance k;
         the measured tree's refined cloud uses its own id.
     trunk : (N,) bool or None
-        The point lies on a trunk (a tree's stem, not its limbs or foliage; the segmenter's
-        trunk head), None where that is not known (a segmenter without the head).
+        The point lies on a trunk (a tree's stem, not its limbs or foliage; the trunk network,
+        else the segmenter's trunk head), None where that is not known (neither is shipped).
     """
     xyz: np.ndarray
     rgb: np.ndarray

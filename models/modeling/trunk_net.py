@@ -19,7 +19,7 @@ from torch.nn import functional as F
 
 from monodbh.models.modeling.efficientnet_lite import FEATURE_CHANNELS, EfficientNetLite0
 
-__all__ = ["TrunkNetConfig", "TrunkNetHead", "TrunkNet"]
+__all__ = ["TrunkNetConfig", "TrunkNetHead", "TrunkNet", "trunk_net_spec"]
 
 
 @dataclass(frozen=True)
@@ -84,3 +84,20 @@ class TrunkNet(nn.Module):
         if x.ndim != 4 or x.shape[1] != 3:
             raise ValueError(f"expected images (B, 3, S, S), got {tuple(x.shape)}")
         return self.head(self.backbone(x))
+
+
+def trunk_net_spec(side: int = 256, threshold: float = 0.5, info: dict | None = None):
+    """I/O contract of the trunk network's ONNX file (kind ``"trunk_net"``): the photo or tile
+    stretched to ``(1, 3, side, side)`` and ImageNet-normalised (the segmenter's preprocessing)
+    in, ``trunk_logits`` ``(1, 1, side / 4, side / 4)`` out; ``extra``: ``trunk_threshold`` and
+    ``info``."""
+    from monodbh.models.modeling.registry import ModelSpec, Preprocess, TensorSpec
+    return ModelSpec(
+        kind="trunk_net", size="effl0",
+        inputs=(TensorSpec("image", (1, 3, side, side), "float32",
+                           "RGB photo or tile resized (stretched) to SxS, /255, ImageNet mean/std"),),
+        outputs=(TensorSpec("trunk_logits", (1, 1, side // 4, side // 4), "float32",
+                            "trunk logit per pixel at 1/4 input resolution (a tree's stem and the rope "
+                            "on it; not branches or foliage)"),),
+        preprocess=(Preprocess(input="image"),), metric="trunk_iou", higher_is_better=True,
+        extra={"trunk_threshold": threshold, "info": info or {}})

@@ -13,6 +13,8 @@ onnxruntime and ``monodbh.calib.errors`` (no torch).
 * ``rope_finder``: :mod:`.rope_finder`, :class:`RopeFinder`, ``models/rope_finder_int8.onnx``
 * ``trunk_head``: :mod:`.trunk_head`, :class:`TrunkHead`, ``models/trunk_head_int8.onnx`` (reads
   the segmenter's ``mask_features``; run by :meth:`Segmenter.predict` ``trunk=True`` only)
+* ``trunk_net``: :mod:`.trunk_net`, :class:`TrunkNet`, ``models/trunk_net_int8.onnx`` (the photo's
+  trunk map for ``dbh reconstruct``; read instead of the trunk head where shipped)
 
 :mod:`.common` holds the sessions, the manifest and the shared image helpers;
 :mod:`.networks` loads all of them at once (:func:`load_networks`) with the error model measured
@@ -28,7 +30,8 @@ from monodbh.models.runtime.stem_base import BaseEstimate, StemBaseFinder
 from monodbh.models.runtime.stem_edge import EdgeEstimate, StemEdgeFinder
 from monodbh.models.runtime.tree import TreePredictor
 from monodbh.models.runtime.trunk_head import TrunkHead
+from monodbh.models.runtime.trunk_net import TrunkNet
 
 __all__ = ["MANIFEST_PATH", "MODELS_DIR", "OnnxPredictor", "load_manifest", "Segmenter", "SegmentationResult",
            "DepthPredictor", "TreePredictor", "StemBaseFinder", "BaseEstimate", "StemEdgeFinder", "EdgeEstimate", "RopeVerifier", "RopeFinder",
-           "RopeFinderConfig", "TrunkHead", "ERROR_MODEL_KINDS", "Networks", "fresh_error_model", "load_networks"]
+           "RopeFinderConfig", "TrunkHead", "TrunkNet", "ERROR_MODEL_KINDS", "Networks", "fresh_error_model", "load_networks"]

@@ -83,6 +83,9 @@ class Networks:
         The error model's calibration of network-led distances, None without one.
     error_model_stale : bool
         The manifest holds an error model, but not one measured for these networks run so.
+    trunk_net : Path or None
+        The trunk network's file (:class:`~.trunk_net.TrunkNet`), loaded only where a trunk map
+        is asked for; None when none is shipped.
     """
 
     segmenter: Segmenter
@@ -97,6 +100,7 @@ class Networks:
     rank: dict[str, float] | None
     distance_calibration: dict[str, Any] | None
     error_model_stale: bool
+    trunk_net: Path | None = None
 
 
 def _required(models: dict[str, Any], mdir: Path, kind: str) -> Path:
@@ -178,6 +182,7 @@ def load_networks(models_dir: str | Path | None = None, *, threads: int = 2, dep
     rope_verifier = _optional(models, mdir, "rope_verifier")
     rope_finder = _optional(models, mdir, "rope_finder")
     trunk_head = _optional(models, mdir, "trunk_head")      # loaded only where a trunk map is asked for
+    trunk_net = _optional(models, mdir, "trunk_net")        # the same
     em = fresh_error_model(manifest, depth_flip_tta)
     return Networks(
         segmenter=Segmenter(_required(models, mdir, "segmenter"), manifest=manifest, trunk_head=trunk_head, **opts),
@@ -193,4 +198,5 @@ def load_networks(models_dir: str | Path | None = None, *, threads: int = 2, dep
         rank=em.get("rank"),
         distance_calibration=em.get("distance_calibration"),
         error_model_stale=bool(manifest.get("error_model")) and not em,
+        trunk_net=trunk_net,
     )

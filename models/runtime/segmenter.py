@@ -18,7 +18,7 @@ import numpy as np
 from monodbh.models.runtime.common import MonodbhError, OnnxPredictor
 
 __all__ = ["FEATURES_OUTPUT", "TRUNK_TILE_FRAC", "TRUNK_TILE_BLEND", "SegmentationResult", "panoptic_merge",
-           "trunk_probability", "tile_origins", "tile_boxes", "tile_weight", "Segmenter"]
+           "trunk_probability", "tile_origins", "tile_boxes", "tile_weight", "blend_tiles", "Segmenter"]
 
 #: the segmenter's per-pixel embedding (``(1, D, S/4, S/4)``), an output of files that feed a
 #: trunk head; computed in every run, copied out only when asked for
@@ -298,6 +298,40 @@ def tile_weight(box: tuple[int, int, int, int], height: int, width: int) -> np.n
     return np.outer(ramp(y0, y1, height), ramp(x0, x1, width)).astype(np.float32)
 
 
+def blend_tiles(rgb: np.ndarray, logits_of, size: tuple[int, int] | None = None,
+                tile_frac: float | None = TRUNK_TILE_FRAC) -> np.ndarray:
+    """Probability ``(H, W)`` float32 of a photo ``(H, W, 3)`` at ``size`` = (W, H) (default the
+    photo's) from ``logits_of(image) -> (h, w) logits``: over square tiles of side ``tile_frac`` x
+    the long side, half a tile apart (:func:`tile_boxes`), each upsampled in logit space
+    (:func:`trunk_probability`) and blended by :func:`tile_weight` (:data:`TRUNK_TILE_BLEND`);
+    None: one pass over the whole photo.
+
+    Examples
+    --------
+    >>> rgb = np.zeros((60, 80, 3), np.uint8)
+    >>> p = blend_tiles(rgb, lambda im: np.zeros((4, 4), np.float32), tile_frac=0.5)
+    >>> p.shape, float(p.min()), float(p.max())
+    ((60, 80), 0.5, 0.5)
+    """
+    H, W = rgb.shape[:2]
+    if tile_frac is None:
+        prob = trunk_probability(logits_of(rgb), (W, H))
+    else:
+        total = np.zeros((H, W), np.float32)
+        cover = np.zeros((H, W), np.float32)
+        for box in tile_boxes(H, W, tile_frac):
+            y0, y1, x0, x1 = box
+            lg = logits_of(np.ascontiguousarray(rgb[y0:y1, x0:x1]))
+            w = {"tent": tile_weight, "mean": lambda *_: 1.0}[TRUNK_TILE_BLEND](box, H, W)
+            total[y0:y1, x0:x1] += w * trunk_probability(lg, (x1 - x0, y1 - y0))
+            cover[y0:y1, x0:x1] += w
+        prob = total / cover
+    size = size or (W, H)
+    if (W, H) != tuple(size):
+        prob = cv2.resize(prob, (int(size[0]), int(size[1])), interpolation=cv2.INTER_LINEAR)
+    return prob
+
+
 def trunk_probability(logits: np.ndarray, size: tuple[int, int]) -> np.ndarray:
     """Trunk logits ``(h, w)`` -> probability ``(H, W)`` float32 at ``size`` = (W, H), upsampled
     bilinearly in logit space (as the masks are).
@@ -405,23 +439,7 @@ class Segmenter(OnnxPredictor):
         MonodbhError
             No trunk head for this segmenter.
         """
-        H, W = rgb.shape[:2]
-        if tile_frac is None:
-            prob = trunk_probability(self.raw_with_trunk(rgb)[2], (W, H))
-        else:
-            total = np.zeros((H, W), np.float32)
-            cover = np.zeros((H, W), np.float32)
-            for box in tile_boxes(H, W, tile_frac):
-                y0, y1, x0, x1 = box
-                tl = self.raw_with_trunk(np.ascontiguousarray(rgb[y0:y1, x0:x1]))[2]
-                w = {"tent": tile_weight, "mean": lambda *_: 1.0}[TRUNK_TILE_BLEND](box, H, W)
-                total[y0:y1, x0:x1] += w * trunk_probability(tl, (x1 - x0, y1 - y0))
-                cover[y0:y1, x0:x1] += w
-            prob = total / cover
-        size = size or (W, H)
-        if (W, H) != tuple(size):
-            prob = cv2.resize(prob, (int(size[0]), int(size[1])), interpolation=cv2.INTER_LINEAR)
-        return prob
+        return blend_tiles(rgb, lambda im: self.raw_with_trunk(im)[2], size, tile_frac)
 
     def predict(self, rgb: np.ndarray, size: tuple[int, int] | None = None,
                 score_threshold: float = 0.5, overlap_threshold: float = 0.8,

@@ -8,8 +8,9 @@ and trains only its decoder on the generator's ``stem`` label, on the same photo
 crops as the trunk head (:func:`.trunk_head.tile_views`). The backbone's four feature maps are
 computed once per photo and view and cached per folder in the run folder.
 
-``eval`` scores a run in float32 (the network is not exported yet): one pass on validation
-folders' features, the trunk map in tiles (:func:`trunk_map`, blended as
+``ship`` exports a run's network int8 into ``models/`` (``dbh reconstruct`` then reads its
+trunk map). ``eval`` scores the shipped file (or ``--run``'s network in float32, or ``--onnx``'s
+file): the trunk map in tiles (:func:`trunk_map`, blended as
 ``Segmenter.trunk_map``) on ``dbh synth`` folders at the photo's resolution, and the real
 photos' hand-drawn trunk outlines (``real_trunk_bench``'s scores).
 
@@ -19,8 +20,11 @@ Usage::
     python -m monodbh.models.training.trunk_net train --out runs/trunk_net --data data/trunk_train \\
         --data data/trunk_train_r --data data/trunk_port --data data/trunk_zoom \\
         --val data/trunk_val --val data/trunk_val_h --steps 3000 --views 3
-    python -m monodbh.models.training.trunk_net eval runs/trunk_net data/trunk_val12 data/trunk_val12_h \\
+    python -m monodbh.models.training.trunk_net eval data/trunk_val12 data/trunk_val12_h --run runs/trunk_net \\
         --tiles 0.5 --real ../shared/data/real_trees
+    python -m monodbh.models.training.trunk_net ship runs/trunk_net --calib data/trunk_train \\
+        --val data/trunk_val12 --val data/trunk_val12_h
+    python -m monodbh.models.training.trunk_net eval data/bench data/bench_heldout --tiles 0.5   # the shipped int8 file
 
 Imported by nothing (a command); imports the modeling, the synthetic data's reader and the
 trunk head's training helpers.
@@ -38,8 +42,8 @@ import numpy as np
 
 from monodbh.models.training.trunk_head import LABEL_SIDE, THRESHOLD, _pixel_scores, _stem_label, tile_views
 
-__all__ = ["INPUT_SIDE", "photo_input", "load_backbone", "load_features", "train", "load_net", "trunk_map",
-           "score_folder", "score_real", "main"]
+__all__ = ["INPUT_SIDE", "photo_input", "load_backbone", "load_features", "train", "load_net", "export", "ship",
+           "OnnxTrunkNet", "trunk_map", "score_folder", "score_real", "main"]
 
 #: the network's input side (the photo or tile stretched to it, as the segmenter's)
 INPUT_SIDE = 256
@@ -247,6 +251,98 @@ def load_net(run: str | os.PathLike):
     return net.eval()
 
 
+def export(run: str | os.PathLike, int8_path: str | os.PathLike, calibration: str | os.PathLike,
+           n_calib: int = 32, recipe: str = "u8s8_qdq_all") -> Path:
+    """The run's network as one int8 ONNX file (kind ``trunk_net``: image in, trunk logits out;
+    static QDQ with ``recipe``, calibrated on the first ``n_calib`` photos of the ``dbh synth``
+    folder ``calibration``, half of them whole and half as tile-like crops)."""
+    import tempfile
+    import warnings
+
+    from monodbh.models.export.onnx_io import export_onnx
+    from monodbh.models.export.quantize import quantize_int8, recipes_by_name
+    from monodbh.models.modeling.trunk_net import trunk_net_spec
+    from monodbh.models.synthetic.io import list_samples, read_sample
+    run, int8_path = Path(run), Path(int8_path)
+    conf = json.loads((run / "config.json").read_text())
+    info = {k: conf[k] for k in ("data", "steps", "photos", "views")}
+    spec = trunk_net_spec(INPUT_SIDE, THRESHOLD, info)
+    feeds = []
+    for k, i in enumerate(list_samples(calibration)[:n_calib]):
+        s = read_sample(calibration, i)
+        rgb = s["rgb"] if k % 2 == 0 else tile_views(s["rgb"], s["stem"], 1, np.random.default_rng([7, i]))[0][0]
+        feeds.append({"image": photo_input(rgb)[None]})
+    if not feeds:
+        raise ValueError(f"{calibration}: no samples to calibrate on")
+    int8_path.parent.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory(dir=int8_path.parent) as td, warnings.catch_warnings():
+        import torch
+        warnings.filterwarnings("ignore", category=torch.jit.TracerWarning)
+        warnings.filterwarnings("ignore", category=DeprecationWarning)
+        fp32 = Path(td) / "trunk_net_fp32.onnx"
+        export_onnx(load_net(run), spec, fp32)
+        tmp = Path(td) / "trunk_net_int8.onnx"
+        quantize_int8(fp32, tmp, feeds, spec, recipes_by_name([recipe])[0])
+        os.replace(tmp, int8_path)
+    return int8_path
+
+
+def ship(run: str | os.PathLike, calibration: str | os.PathLike, val: Sequence[str | os.PathLike] = (),
+         models_dir: str | os.PathLike | None = None, n_calib: int = 32, tiles: float = 0.5) -> dict[str, Any]:
+    """Ship ``run``'s network as ``models_dir/trunk_net_int8.onnx`` (:func:`export`) and list it
+    in ``models_dir/manifest.json`` (kind ``trunk_net``), with its int8 scores in ``tiles`` on
+    the ``val`` folders as the runtime runs it. ``dbh reconstruct`` then reads its trunk map
+    instead of the segmenter's trunk head's; no measurement reads either."""
+    import hashlib
+
+    from monodbh.models.runtime.common import MODELS_DIR, load_manifest
+    from monodbh.models.runtime.trunk_net import TrunkNet
+    from monodbh.models.training.common import atomic_write_text
+    models_dir = Path(models_dir or MODELS_DIR)
+    man_path = models_dir / "manifest.json"
+    manifest = load_manifest(man_path)
+    out = models_dir / "trunk_net_int8.onnx"
+    tmp = models_dir / "trunk_net_int8.new.onnx"
+    export(run, tmp, calibration, n_calib)
+    os.replace(tmp, out)
+    net = TrunkNet(out)
+    scores = {Path(v).name: {k: (round(x, 4) if isinstance(x, float) else x) for k, x in
+                             score_folder(net, v, tiles).items()} for v in val}
+    conf = json.loads((Path(run) / "config.json").read_text())
+    manifest["models"]["trunk_net"] = {
+        "file": out.name, "sha256": hashlib.sha256(out.read_bytes()).hexdigest(), "spec": net.spec,
+        "inputs": [{k: o[k] for k in ("dtype", "name", "shape")} for o in net.spec["inputs"]],
+        "outputs": [{k: o[k] for k in ("dtype", "name", "shape")} for o in net.spec["outputs"]],
+        "precision": "int8", "quant_recipe": "u8s8_qdq_all",
+        "training": {k: conf[k] for k in ("data", "steps", "photos", "views")},
+        "validation": {"int8": scores},
+        "exported_at": time.strftime("%Y-%m-%dT%H:%M:%S+00:00", time.gmtime())}
+    atomic_write_text(man_path, json.dumps(manifest, indent=2, sort_keys=True) + "\n")
+    return {"trunk_net": str(out), "bytes": out.stat().st_size, "validation": scores}
+
+
+class OnnxTrunkNet:
+    """An exported trunk network run by onnxruntime, called as the torch module is
+    (``(B, 3, S, S)`` tensor -> ``(B, 1, S / 4, S / 4)`` tensor) so that :func:`trunk_map` and
+    the scorers take either; ``seconds`` and ``passes`` count the time spent in it."""
+
+    def __init__(self, path: str | os.PathLike, threads: int = 2) -> None:
+        import onnxruntime as ort
+        so = ort.SessionOptions()
+        so.intra_op_num_threads = threads
+        self.session = ort.InferenceSession(str(path), so, providers=["CPUExecutionProvider"])
+        self.seconds, self.passes = 0.0, 0
+
+    def __call__(self, x):
+        import torch
+        t = time.perf_counter()
+        out = [self.session.run(["trunk_logits"], {"image": np.ascontiguousarray(b[None], np.float32)})[0]
+               for b in x.numpy()]
+        self.seconds += time.perf_counter() - t
+        self.passes += len(out)
+        return torch.from_numpy(np.concatenate(out))
+
+
 def trunk_map(net, rgb: np.ndarray, size: tuple[int, int] | None = None,
               tile_frac: float | None = 0.5) -> np.ndarray:
     """Trunk probability ``(H, W)`` float32 of a photo ``(H, W, 3)`` at ``size`` = (W, H) (default
@@ -275,17 +371,32 @@ def trunk_map(net, rgb: np.ndarray, size: tuple[int, int] | None = None,
     return prob
 
 
-def score_folder(net, folder: str | os.PathLike, tiles: float | None = 0.5) -> dict[str, Any]:
-    """:func:`trunk_map` against a ``dbh synth`` folder's ``stem`` label at the photo's resolution
-    (the trunk head's ``trunk_head eval --tiles``)."""
+def _map(net, rgb: np.ndarray, size, tiles) -> np.ndarray:
+    """The trunk map of a torch-like network (:func:`trunk_map`) or of the runtime's
+    :class:`~monodbh.models.runtime.trunk_net.TrunkNet` (its own ``trunk_map``)."""
+    if hasattr(net, "trunk_map"):
+        return net.trunk_map(rgb, size, tiles)
+    return trunk_map(net, rgb, size, tiles)
+
+
+def score_folder(net, folder: str | os.PathLike, tiles: float | None = 0.5, n: int | None = None) -> dict[str, Any]:
+    """The trunk map (:func:`_map`) against the ``stem`` label of a ``dbh synth`` folder's first
+    ``n`` photos (default all) at the photo's resolution (the trunk head's ``trunk_head eval
+    --tiles``).
+
+    Raises
+    ------
+    ValueError
+        A sample without the ``stem`` label.
+    """
     from monodbh.models.synthetic.io import list_samples, read_sample
 
     def masks():
-        for i in list_samples(folder):
+        for i in list_samples(folder)[:n]:
             s = read_sample(folder, i)
             if "stem" not in s:
                 raise ValueError(f"{folder}: sample {i:06d} has no 'stem' label; render it again with dbh synth")
-            yield trunk_map(net, s["rgb"], None, tiles) >= THRESHOLD, s["stem"].astype(bool)
+            yield _map(net, s["rgb"], None, tiles) >= THRESHOLD, s["stem"].astype(bool)
     return {**_pixel_scores(masks(), THRESHOLD), "tiles": tiles}
 
 
@@ -300,11 +411,11 @@ class _BenchSegmenter:
     def predict(self, rgb, size=None, trunk=False):
         r = self.seg.predict(rgb, size=size)
         if trunk:
-            r.trunk_prob = trunk_map(self.net, rgb, size, None)
+            r.trunk_prob = _map(self.net, rgb, size, None)
         return r
 
     def trunk_map(self, rgb, size=None, tile_frac=0.5):
-        return trunk_map(self.net, rgb, size, tile_frac)
+        return _map(self.net, rgb, size, tile_frac)
 
 
 def score_real(net, folder: str | os.PathLike, tiles: float | None = 0.5,
@@ -331,25 +442,51 @@ def main(argv: Sequence[str] | None = None) -> int:
     t.add_argument("--threads", type=int, default=2)
     t.add_argument("--views", type=int, default=3, help="tile-like crops per photo besides the whole (default 3)")
     t.add_argument("--resume", action="store_true")
-    e = sub.add_parser("eval", help="score a run (float32) on dbh synth folders and the real outlines")
-    e.add_argument("run", type=Path)
+    e = sub.add_parser("eval", help="score the shipped network (or a run's, float32) on dbh synth folders "
+                                    "and the real outlines")
     e.add_argument("folders", nargs="*", type=Path)
+    e.add_argument("--run", type=Path, help="a run folder's network in float32 (default: the shipped int8 file)")
     e.add_argument("--tiles", type=float, metavar="F", help="tiles of side F x the long side (default: one pass)")
     e.add_argument("--real", type=Path, metavar="DIR", help="also the real photos' outlines (../shared/data/real_trees)")
     e.add_argument("--draw", type=Path, metavar="DIR", help="with --real: each photo's outlines and trunks")
+    e.add_argument("--onnx", type=Path, metavar="FILE", help="an exported file other than the shipped one")
+    sh = sub.add_parser("ship", help="export a run's network int8 into models/ and list it in the manifest")
+    sh.add_argument("run", type=Path)
+    sh.add_argument("--calib", required=True, type=Path, help="dbh synth folder to calibrate on")
+    sh.add_argument("--val", action="append", type=Path, default=[], help="folder scored in tiles (repeatable)")
+    x = sub.add_parser("export", help="write a run's network as an int8 ONNX file (not shipped)")
+    x.add_argument("run", type=Path)
+    x.add_argument("out", type=Path)
+    x.add_argument("--calib", required=True, type=Path, help="dbh synth folder to calibrate on")
+    x.add_argument("--n-calib", type=int, default=32)
     a = ap.parse_args(argv)
+    if a.cmd == "ship":
+        print(json.dumps(ship(a.run, a.calib, a.val), indent=1))
+        return 0
+    if a.cmd == "export":
+        path = export(a.run, a.out, a.calib, a.n_calib)
+        print(json.dumps({"file": str(path), "bytes": path.stat().st_size}, indent=1))
+        return 0
     if a.cmd == "train":
         scores = train(a.out, a.data, a.val, a.steps, a.batch, a.lr, a.seed, a.threads, resume=a.resume, views=a.views)
         print(json.dumps(scores, indent=1))
         return 0
     if a.tiles is not None and not 0 < a.tiles <= 1:
         ap.error(f"--tiles must be in (0, 1], got {a.tiles}")
-    net = load_net(a.run)
+    if a.run is not None and a.onnx is not None:
+        ap.error("--run and --onnx exclude each other")
+    if a.run is not None:
+        net = load_net(a.run)
+    else:
+        from monodbh.models.runtime.common import MODELS_DIR
+        net = OnnxTrunkNet(a.onnx or MODELS_DIR / "trunk_net_int8.onnx")
     out: dict[str, Any] = {str(f): score_folder(net, f, a.tiles) for f in a.folders}
     if a.real is not None:
         summary, rows = score_real(net, a.real, a.tiles, a.draw)
         out["real"] = {**summary, "trunks_iou": {f"{r['photo'][:2]}#{r['trunk']}": round(r["iou"], 3)
                                                  for r in rows if r["width_px"] >= 20}}
+    if isinstance(net, OnnxTrunkNet) and net.passes:
+        out["ms_per_pass"] = round(1000 * net.seconds / net.passes, 1)
     print(json.dumps(out, indent=1))
     return 0
 

@@ -15,7 +15,9 @@ int8 models are scored by their training's evaluation hooks
   (:func:`monodbh.models.training.rope_finder_bank.cut_folder`, to a temporary file);
 - trunk_head (the segmenter's): ``iou`` of the trunk pixels, on folders rendered with the
   ``stem`` label (:func:`monodbh.models.training.trunk_head.score_shipped`; ``-`` on others, e.g.
-  ``data/trunk_val data/trunk_val_h``).
+  ``data/trunk_val data/trunk_val_h``);
+- trunk_net: ``iou`` of the trunk pixels of the trunk network in one pass, at the photo's
+  resolution (:func:`monodbh.models.training.trunk_net.score_folder`; ``-`` likewise).
 
 The last column gives each figure of the last folder over the first's (errors: how many times
 larger; scores: how many times smaller), the ratio issue 26 bounds by 1.25.
@@ -44,7 +46,7 @@ FIGURES = (("segmenter", "roped_iou", False), ("segmenter", "roped_detected", Fa
            ("stem_base", "recall", False), ("stem_base", "precision", False),
            ("stem_edge", "score", False), ("stem_edge", "width_median_pct", True),
            ("rope_finder", "recall", False), ("rope_finder", "tile_auc", False),
-           ("trunk_head", "iou", False))
+           ("trunk_head", "iou", False), ("trunk_net", "iou", False))
 
 
 def _look(folder: Path) -> str:
@@ -55,7 +57,7 @@ def _look(folder: Path) -> str:
 
 def score_folder(folder: str | Path, n: int = 120, seed: int = 0, models_dir: Optional[Path] = None,
                  kinds: Sequence[str] = ("segmenter", "depth", "tree", "stem_base", "stem_edge", "rope_finder",
-                                         "trunk_head")) -> dict:
+                                         "trunk_head", "trunk_net")) -> dict:
     """Each shipped network's evaluation metrics on the samples of ``folder``.
 
     Parameters
@@ -84,6 +86,14 @@ def score_folder(folder: str | Path, n: int = 120, seed: int = 0, models_dir: Op
         if kind == "trunk_head":
             from monodbh.models.training.trunk_head import score_shipped
             out[kind] = score_shipped(folder, n, mdir)
+            continue
+        if kind == "trunk_net":
+            from monodbh.models.runtime.trunk_net import TrunkNet
+            from monodbh.models.training.trunk_net import score_folder as score_trunk_net
+            try:
+                out[kind] = score_trunk_net(TrunkNet(mdir / entries[kind]["file"]), folder, None, n)
+            except ValueError:                      # rendered before the stem label
+                out[kind] = {}
             continue
         path = mdir / entries[kind]["file"]
         spec = shipped_spec(get_spec(kind), path)          # the file's own conventions
@@ -120,7 +130,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--models-dir", type=Path, default=None)
     ap.add_argument("--json", type=Path, default=None)
-    ap.add_argument("--kinds", default="segmenter,depth,tree,stem_base,stem_edge,rope_finder,trunk_head",
+    ap.add_argument("--kinds", default="segmenter,depth,tree,stem_base,stem_edge,rope_finder,trunk_head,trunk_net",
                     help="comma-separated networks to score")
     a = ap.parse_args(argv)
     kinds = [k for k in a.kinds.split(",") if k]

@@ -23,7 +23,8 @@ area over its rows):
 and each trunk's IoU, to check the outlines and see the failures. ``--crop F`` segments, for each
 outlined trunk, a square crop of side ``F`` x the photo's long side centred on the trunk instead
 of the whole photo (:func:`score_trunk_in_crop`): how much a zoomed second pass would find.
-``--trunk`` scores the segmenter's trunk head instead of its "tree" instances: the trunk pixels
+``--trunk --net`` scores the shipped trunk network's map instead (``models/trunk_net_int8.onnx``,
+what ``dbh reconstruct`` reads). ``--trunk`` scores the segmenter's trunk head instead of its "tree" instances: the trunk pixels
 are those whose trunk probability reaches the segmenter's ``trunk_threshold``, the instances
 their connected parts (8-neighbour), so a trunk is scored against the stem the head found, not
 against a whole tree with its crown; with ``--tiles F``, the head's probability blended over
@@ -35,9 +36,9 @@ parts of that mask (so touching trunks and crowns merge, which the IoU counts).
 Usage::
 
     python -m monodbh.toolkit.evaluation.real_trunk_bench ../shared/data/real_trees [--draw runs/real_trunks] [--json F]
-        [--model OTHER_SEGMENTER.onnx] [--crop 0.4 | [--tiles 0.3] [--trunk [--threshold P]]]
+        [--model OTHER_SEGMENTER.onnx] [--crop 0.4 | [--tiles 0.3] [--trunk [--net] [--threshold P]]]
 
-Imported by nothing (a command); imports the segmenter's runtime and ``monodbh.calib``.
+Imported by nothing (a command); imports the segmenter's and the trunk network's runtimes and ``monodbh.calib``.
 """
 from __future__ import annotations
 
@@ -51,7 +52,7 @@ import numpy as np
 
 from monodbh.models.runtime.segmenter import tile_boxes, tile_origins
 
-__all__ = ["OUTLINES", "MIN_WIDTH_PX", "FOUND_IOU", "load_outlines", "rasterize", "score_trunk",
+__all__ = ["OUTLINES", "MIN_WIDTH_PX", "FOUND_IOU", "load_outlines", "rasterize", "score_trunk", "WithTrunkNet",
            "trunk_instances", "score_photo", "crop_around", "score_trunk_in_crop", "tile_origins", "segment_tiled",
            "summarise", "main"]
 
@@ -160,6 +161,24 @@ def trunk_instances(trunk_prob: np.ndarray, threshold: float) -> tuple[np.ndarra
     mask = np.asarray(trunk_prob) >= threshold
     _, inst = cv2.connectedComponents(mask.astype(np.uint8), connectivity=8)
     return mask, inst.astype(np.int32)
+
+
+class WithTrunkNet:
+    """A segmenter whose trunk map is the trunk network's (``--net``: what ``dbh reconstruct``
+    reads where the network is shipped); the segmentation drawn comes from ``segmenter``."""
+
+    def __init__(self, segmenter, trunk_net) -> None:
+        self.segmenter, self.net = segmenter, trunk_net
+        self.path, self.trunk_threshold = trunk_net.path, trunk_net.threshold
+
+    def predict(self, rgb, size=None, trunk=False):
+        r = self.segmenter.predict(rgb, size=size)
+        if trunk:
+            r.trunk_prob = self.net.trunk_map(rgb, size, None)
+        return r
+
+    def trunk_map(self, rgb, size=None, tile_frac=0.5):
+        return self.net.trunk_map(rgb, size, tile_frac)
 
 
 def score_photo(rgb: np.ndarray, entry: dict, segmenter, tiles: Optional[float] = None, trunk: bool = False,
@@ -341,6 +360,8 @@ def main(argv=None) -> int:
                     help="segment the whole photo in overlapping square tiles of side F x its long side")
     ap.add_argument("--trunk", action="store_true",
                     help="score the segmenter's trunk head (its trunks) instead of its tree instances")
+    ap.add_argument("--net", action="store_true",
+                    help="with --trunk: the shipped trunk network's map (dbh reconstruct's) instead of the trunk head's")
     ap.add_argument("--threshold", type=float, metavar="P",
                     help="with --trunk: trunk pixels from this probability on (default the head's, 0.5)")
     a = ap.parse_args(argv)
@@ -355,7 +376,13 @@ def main(argv=None) -> int:
     if a.model is not None:
         from monodbh.models.runtime.segmenter import Segmenter
         seg = Segmenter(a.model)
-    if a.trunk:
+    if a.net and not a.trunk:
+        ap.error("--net needs --trunk")
+    if a.net:
+        from monodbh.models.runtime.segmenter import Segmenter
+        from monodbh.models.runtime.trunk_net import TrunkNet
+        seg = WithTrunkNet(seg or Segmenter(trunk_head=None), TrunkNet())
+    elif a.trunk:
         from monodbh.models.runtime.segmenter import Segmenter
         seg = seg or Segmenter()
         if not seg.has_trunk:
