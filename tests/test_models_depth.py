@@ -3,11 +3,10 @@ import json
 import math
 
 import numpy as np
-import pytest
 import torch
 
 from monodbh.models.modeling import build
-from monodbh.models.modeling.cden import (CDEN_CONFIGS, build_cden_discriminator, code_to_metric,
+from monodbh.models.modeling.cden import (build_cden_discriminator, code_to_metric,
                                           metric_to_code)
 from monodbh.models.modeling.swin import SwinBlock
 from monodbh.models.runtime.depth import depth_code_to_metric, metric_to_depth_code

@@ -2,7 +2,6 @@
 beside each photo, through toolkit.batch, without networks."""
 import json
 
-import numpy as np
 import pytest
 from typer.testing import CliRunner
 

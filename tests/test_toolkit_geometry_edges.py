@@ -1,6 +1,5 @@
 """Trunk silhouette edges at the rope (toolkit.geometry.edges): trunk_edges, rope_row_contrast, channel_mean."""
 import numpy as np
-import pytest
 
 from monodbh.toolkit.geometry import trunk_edges
 from geometry_scenes import roped_pair

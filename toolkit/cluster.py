@@ -27,7 +27,7 @@ from __future__ import annotations
 import threading
 import uuid
 from collections import deque
-from typing import Any, Iterator, Sequence
+from typing import Iterator, Sequence
 
 from .batch import Backend, BatchError, Job, error_result, one_line, run_job
 from .result import MeasureResult

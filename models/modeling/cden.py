@@ -29,7 +29,6 @@ from dataclasses import dataclass, field, replace
 
 import torch
 from torch import nn
-from torch.nn import functional as F
 
 from monodbh.models.modeling.registry import (IMAGENET_MEAN, IMAGENET_STD, ModelSpec, Preprocess,
                                               TensorSpec, register)

@@ -9,7 +9,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .scene import BREAST_HEIGHT_M, Scene, Tree, ground_height
+from .scene import Scene, Tree, ground_height
 from .vec import cross3, norm_rows
 
 __all__ = ["MeshSet", "build_meshes", "SEM_SKY", "SEM_GROUND", "SEM_VEG", "SEM_TREE", "SEM_OTHER"]

@@ -17,7 +17,6 @@ after per-image median scaling (``ms_`` prefix).
 """
 from __future__ import annotations
 
-import math
 import time
 from dataclasses import asdict, dataclass, field, fields
 from typing import Any, Callable
@@ -29,8 +28,8 @@ from torch import nn
 from torch.nn import functional as F
 
 from monodbh.models.modeling.cden import (_LN_RANGE, build_cden_discriminator)
-from monodbh.models.modeling.registry import build, get_spec
-from monodbh.models.runtime.depth import (letterbox, letterbox_geometry, metric_to_depth_code,
+from monodbh.models.modeling.registry import build
+from monodbh.models.runtime.depth import (letterbox, metric_to_depth_code,
                                         normalize_rgb, depth_code_to_metric)
 from monodbh.models.training.common import (AugmentConfig, DataSource, GeneratorSource,
                                             augment, batch_indices, make_source,

@@ -9,7 +9,7 @@ resolution (a 2 x 2 max: a 1 px rope is one output pixel wide):
 * one crop centred on the reddest place of the photo that is not the rope (red jackets,
   flagging tape, red bark in the light: what the finder must learn to leave alone);
 * one on a random place of a trunk (the segmentation's tree instances) and ``n_rand`` anywhere;
-* with ``--mine MODEL`` instead (hard negatives, :func:`mine_folder`): crops centred on the
+* with ``--mine MODEL`` instead (hard negatives, :func:`cut_folder` with ``mine``): crops centred on the
   places a trained finder takes for rope and are not (its candidates away from the true rope:
   tape, paint marks, red leaves, bark), to train the next finder on.
 
@@ -31,7 +31,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-__all__ = ["TILE", "MARGIN", "cut_photo", "cut_folder", "mine_photo", "mine_folder"]
+__all__ = ["TILE", "MARGIN", "cut_photo", "cut_folder", "mine_photo"]
 
 TILE: int = 192        #: crop side in photo pixels (the finder's ONNX tile)
 MARGIN: int = 24       #: the rope's middle stays this far from a positive crop's border
