@@ -38,7 +38,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-__all__ = ["FEATURE_TENSOR", "THRESHOLD", "feature_tensor_name", "FeatureExtractor", "jitter_photo", "tile_views",
+__all__ = ["FEATURE_TENSOR", "THRESHOLD", "feature_tensor_name", "FeatureExtractor", "jitter_photo", "tile_views", "fit_head",
            "load_features",
            "train", "evaluate", "expose_features", "export_head", "evaluate_onnx", "ship", "score_shipped", "main"]
 
@@ -228,6 +228,59 @@ def evaluate(head, F: np.ndarray, Y: np.ndarray, threshold: float = THRESHOLD,
     return _pixel_scores(masks(), threshold)
 
 
+def fit_head(head, draw, out: Path, config: dict[str, Any], steps: int, lr: float, seed: int, resume: bool,
+             stop_at: int | None, checkpoint_every: int, log=print) -> bool:
+    """The resumable training loop of a trunk head on cached features: AdamW with a one-cycle
+    learning rate, BCE + soft Dice against the ``stem`` label at 256 x 256 (:data:`LABEL_SIDE`).
+    ``draw(rng) -> (x, y)`` gives a batch (features for ``head``, labels ``(B, 1, 256, 256)`` in
+    0-1) from the run's random generator. ``out/checkpoint.pt`` (every ``checkpoint_every``
+    steps and at the end; ``resume`` goes on from it when its ``config`` is this one) and
+    ``out/log.jsonl``; ``out/config.json`` holds ``config``. Returns whether all ``steps`` ran
+    (False when stopped at ``stop_at``)."""
+    import torch
+    from torch.nn import functional as TF
+
+    opt = torch.optim.AdamW(head.parameters(), lr=lr, weight_decay=1e-4)
+    sched = torch.optim.lr_scheduler.OneCycleLR(opt, lr, total_steps=steps, pct_start=0.05)
+    rng = np.random.default_rng(seed)
+    step = 0
+    ck = out / "checkpoint.pt"
+    if resume and ck.exists():
+        state = torch.load(ck, weights_only=False)
+        if state["config"] != config:
+            raise ValueError(f"{ck}: another run's checkpoint (its config differs)")
+        head.load_state_dict(state["head"]); opt.load_state_dict(state["opt"])
+        sched.load_state_dict(state["sched"]); rng.bit_generator.state = state["rng"]
+        step = state["step"]
+    (out / "config.json").write_text(json.dumps(config, indent=1) + "\n")
+    t0 = time.time()
+    head.train()
+    with open(out / "log.jsonl", "a") as logf:
+        while step < min(steps, stop_at or steps):
+            x, y = draw(rng)
+            lo = _logits_at_labels(head, x)
+            bce = TF.binary_cross_entropy_with_logits(lo, y)
+            p = torch.sigmoid(lo)
+            dice = 1 - (2 * (p * y).sum((1, 2, 3)) + 1) / (p.sum((1, 2, 3)) + y.sum((1, 2, 3)) + 1)
+            loss = bce + dice.mean()
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
+            sched.step()
+            step += 1
+            if step % 50 == 0 or step == steps:
+                logf.write(json.dumps({"step": step, "loss": float(loss.detach()), "bce": float(bce.detach()),
+                                       "s": round(time.time() - t0, 1)}) + "\n")
+                logf.flush()
+            if step % checkpoint_every == 0 or step == steps:
+                tmp = ck.with_suffix(".tmp")
+                torch.save({"config": config, "head": head.state_dict(), "opt": opt.state_dict(),
+                            "sched": sched.state_dict(), "rng": rng.bit_generator.state, "step": step}, tmp)
+                os.replace(tmp, ck)
+                log(f"{out}: step {step}/{steps}, loss {float(loss.detach()):.4f}")
+    return step >= steps
+
+
 def train(out: str | os.PathLike, data: Sequence[str | os.PathLike], val: Sequence[str | os.PathLike] = (),
           steps: int = 1500, batch: int = 16, lr: float = 2e-3, seed: int = 0,
           segmenter: str | os.PathLike | None = None, threads: int = 2,
@@ -245,7 +298,6 @@ def train(out: str | os.PathLike, data: Sequence[str | os.PathLike], val: Sequen
     turned by up to that angle.
     """
     import torch
-    from torch.nn import functional as TF
 
     from monodbh.models.modeling.trunk_head import TrunkHead, TrunkHeadConfig
     head_cfg = head_cfg or TrunkHeadConfig()
@@ -264,49 +316,15 @@ def train(out: str | os.PathLike, data: Sequence[str | os.PathLike], val: Sequen
         cfg["tilt_deg"] = tilt_deg
     torch.manual_seed(seed)
     head = TrunkHead(head_cfg)
-    opt = torch.optim.AdamW(head.parameters(), lr=lr, weight_decay=1e-4)
-    sched = torch.optim.lr_scheduler.OneCycleLR(opt, lr, total_steps=steps, pct_start=0.05)
-    rng = np.random.default_rng(seed)
-    step = 0
-    ck = out / "checkpoint.pt"
-    if resume and ck.exists():
-        state = torch.load(ck, weights_only=False)
-        if state["config"] != cfg:
-            raise ValueError(f"{ck}: another run's checkpoint (its config differs)")
-        head.load_state_dict(state["head"]); opt.load_state_dict(state["opt"])
-        sched.load_state_dict(state["sched"]); rng.bit_generator.state = state["rng"]
-        step = state["step"]
-    (out / "config.json").write_text(json.dumps(cfg, indent=1) + "\n")
-    t0 = time.time()
-    head.train()
-    with open(out / "log.jsonl", "a") as logf:
-        while step < min(steps, stop_at or steps):
-            idx = rng.integers(0, len(F), batch)
-            x = torch.from_numpy(F[idx].astype(np.float32))
-            y = torch.from_numpy(Y[idx].astype(np.float32) / 255.0)[:, None]
-            if rng.random() < 0.5:                     # mirror: the features roughly mirror too
-                x, y = x.flip(-1), y.flip(-1)
-            lo = _logits_at_labels(head, x)
-            bce = TF.binary_cross_entropy_with_logits(lo, y)
-            p = torch.sigmoid(lo)
-            dice = 1 - (2 * (p * y).sum((1, 2, 3)) + 1) / (p.sum((1, 2, 3)) + y.sum((1, 2, 3)) + 1)
-            loss = bce + dice.mean()
-            opt.zero_grad()
-            loss.backward()
-            opt.step()
-            sched.step()
-            step += 1
-            if step % 50 == 0 or step == steps:
-                logf.write(json.dumps({"step": step, "loss": float(loss.detach()), "bce": float(bce.detach()),
-                                       "s": round(time.time() - t0, 1)}) + "\n")
-                logf.flush()
-            if step % checkpoint_every == 0 or step == steps:
-                tmp = ck.with_suffix(".tmp")
-                torch.save({"config": cfg, "head": head.state_dict(), "opt": opt.state_dict(),
-                            "sched": sched.state_dict(), "rng": rng.bit_generator.state, "step": step}, tmp)
-                os.replace(tmp, ck)
-                log(f"{out}: step {step}/{steps}, loss {float(loss.detach()):.4f}")
-    if step < steps:
+
+    def draw(rng):
+        idx = rng.integers(0, len(F), batch)
+        x = torch.from_numpy(F[idx].astype(np.float32))
+        y = torch.from_numpy(Y[idx].astype(np.float32) / 255.0)[:, None]
+        if rng.random() < 0.5:                     # mirror: the features roughly mirror too
+            x, y = x.flip(-1), y.flip(-1)
+        return x, y
+    if not fit_head(head, draw, out, cfg, steps, lr, seed, resume, stop_at, checkpoint_every, log):
         return {}
     torch.save(head.state_dict(), out / "head.pt")
     scores = {str(v): evaluate(head, *load_features(v, ext, cache)) for v in val}

@@ -40,9 +40,10 @@ from typing import Any, Optional, Sequence
 
 import numpy as np
 
-from monodbh.models.training.trunk_head import LABEL_SIDE, THRESHOLD, _pixel_scores, _stem_label, tile_views
+from monodbh.models.training.trunk_head import (LABEL_SIDE, THRESHOLD, _logits_at_labels, _pixel_scores, _stem_label, fit_head,
+                                                tile_views)
 
-__all__ = ["INPUT_SIDE", "photo_input", "load_backbone", "load_features", "train", "load_net", "export", "ship",
+__all__ = ["INPUT_SIDE", "LABEL_SIDE", "photo_input", "load_backbone", "load_features", "train", "load_net", "export", "ship",
            "OnnxTrunkNet", "trunk_map", "score_folder", "score_real", "main"]
 
 #: the network's input side (the photo or tile stretched to it, as the segmenter's)
@@ -137,11 +138,6 @@ def load_features(folder: str | os.PathLike, backbone, cache_dir: str | os.PathL
     return F, Y
 
 
-def _logits_at_labels(head, xs):
-    from torch.nn import functional as TF
-    return TF.interpolate(head(xs), size=(LABEL_SIDE, LABEL_SIDE), mode="bilinear", align_corners=False)
-
-
 def _evaluate(head, F: list[np.ndarray], Y: np.ndarray, batch: int = 32) -> dict[str, float]:
     import torch
     head.eval()
@@ -170,7 +166,6 @@ def train(out: str | os.PathLike, data: Sequence[str | os.PathLike], val: Sequen
     ``stop_at``). ``cfg``: a :class:`~monodbh.models.modeling.trunk_net.TrunkNetConfig`.
     """
     import torch
-    from torch.nn import functional as TF
 
     from monodbh.models.modeling.trunk_net import TrunkNetConfig, TrunkNetHead
     cfg = cfg or TrunkNetConfig()
@@ -187,48 +182,15 @@ def train(out: str | os.PathLike, data: Sequence[str | os.PathLike], val: Sequen
             "head": {"lat": cfg.lat, "ch": cfg.ch, "dilations": list(cfg.dilations)}}
     torch.manual_seed(seed)
     head = TrunkNetHead(cfg)
-    opt = torch.optim.AdamW(head.parameters(), lr=lr, weight_decay=1e-4)
-    sched = torch.optim.lr_scheduler.OneCycleLR(opt, lr, total_steps=steps, pct_start=0.05)
-    rng = np.random.default_rng(seed)
-    step = 0
-    ck = out / "checkpoint.pt"
-    if resume and ck.exists():
-        state = torch.load(ck, weights_only=False)
-        if state["config"] != conf:
-            raise ValueError(f"{ck}: another run's checkpoint (its config differs)")
-        head.load_state_dict(state["head"]); opt.load_state_dict(state["opt"])
-        sched.load_state_dict(state["sched"]); rng.bit_generator.state = state["rng"]
-        step = state["step"]
-    (out / "config.json").write_text(json.dumps(conf, indent=1) + "\n")
-    t0 = time.time()
-    head.train()
-    with open(out / "log.jsonl", "a") as logf:
-        while step < min(steps, stop_at or steps):
-            idx = np.sort(rng.integers(0, len(Y), batch))
-            xs = [torch.from_numpy(f[idx].astype(np.float32)) for f in F]
-            y = torch.from_numpy(Y[idx].astype(np.float32) / 255.0)[:, None]
-            if rng.random() < 0.5:
-                xs, y = [x.flip(-1) for x in xs], y.flip(-1)
-            lo = _logits_at_labels(head, xs)
-            bce = TF.binary_cross_entropy_with_logits(lo, y)
-            p = torch.sigmoid(lo)
-            dice = 1 - (2 * (p * y).sum((1, 2, 3)) + 1) / (p.sum((1, 2, 3)) + y.sum((1, 2, 3)) + 1)
-            loss = bce + dice.mean()
-            opt.zero_grad()
-            loss.backward()
-            opt.step()
-            sched.step()
-            step += 1
-            if step % 50 == 0 or step == steps:
-                logf.write(json.dumps({"step": step, "loss": float(loss.detach()), "s": round(time.time() - t0, 1)}) + "\n")
-                logf.flush()
-            if step % checkpoint_every == 0 or step == steps:
-                tmp = ck.with_suffix(".tmp")
-                torch.save({"config": conf, "head": head.state_dict(), "opt": opt.state_dict(),
-                            "sched": sched.state_dict(), "rng": rng.bit_generator.state, "step": step}, tmp)
-                os.replace(tmp, ck)
-                log(f"{out}: step {step}/{steps}, loss {float(loss.detach()):.4f}")
-    if step < steps:
+
+    def draw(rng):
+        idx = np.sort(rng.integers(0, len(Y), batch))
+        xs = [torch.from_numpy(f[idx].astype(np.float32)) for f in F]
+        y = torch.from_numpy(Y[idx].astype(np.float32) / 255.0)[:, None]
+        if rng.random() < 0.5:
+            xs, y = [x.flip(-1) for x in xs], y.flip(-1)
+        return xs, y
+    if not fit_head(head, draw, out, conf, steps, lr, seed, resume, stop_at, checkpoint_every, log):
         return {}
     torch.save(head.state_dict(), out / "head.pt")
     scores = {str(v): _evaluate(head, *load_features(v, backbone, cache)) for v in val}
