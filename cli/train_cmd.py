@@ -18,7 +18,7 @@ def train(
     data: Optional[List[Path]] = typer.Option(None, "--data", help="dbh synth folder(s) (rope_verifier: .npz banks of `python -m monodbh.toolkit.evaluation.fit_rope_stem --bank`; rope_finder: of `python -m monodbh.models.training.rope_finder_bank`); default: render on the fly."),
     val: Optional[List[Path]] = typer.Option(None, "--val", help="Validation folder(s) (seeds never used in training)."),
     stop_at: Optional[int] = typer.Option(None, "--stop-at", help="Stop (checkpointed) after this many steps."),
-    size: str = typer.Option("base", "--size", help="Model size: base | tiny | wide (depth/tree: the wider first-run configs) | base384, effl0 (segmenter; effl0 needs the pretrained extra)."),
+    size: str = typer.Option("base", "--size", help="Model size: base | tiny | wide (depth/tree: the wider first-run configs) | base384 (segmenter), effl0 (segmenter, stem_base; needs the pretrained extra)."),
     batch_size: Optional[int] = typer.Option(None, "--batch-size"),
     crop: Optional[int] = typer.Option(None, "--crop", help="rope_finder: training window side in pixels (even; "
                                        "default 128, at most the bank's 192-pixel tiles)."),

@@ -137,3 +137,37 @@ def test_true_base_pixel_tells_a_base_in_grass_from_a_hidden_one():
         assert true_base_pixel(s["meta"], s["depth"], clutter_height_m=0.3)[1] == status
     s, _ = fake_base_sample()
     assert true_base_pixel(s["meta"], s["depth"], clutter_height_m=0.3)[1] == "visible"
+
+
+def test_effl0_stem_base_trains_its_decoder_on_a_frozen_backbone(tmp_path, monkeypatch):
+    """Size ``effl0``: cached features give the same logits as the whole network, the backbone
+    stays as loaded (ImageNet's in a real run; here the random one, as the pretrained extra may be
+    missing) while the decoder moves, and the ONNX file matches torch."""
+    from monodbh.models.export.onnx_io import export_onnx
+    from monodbh.models.training import pretrained, stem_base as training
+
+    torch.manual_seed(0)
+    net = build("stem_base", "effl0").eval()
+    x = torch.randn(2, 4, STRIP_H, STRIP_W)
+    x[:, 3] = 1.0
+    with torch.no_grad():
+        assert torch.allclose(net.decode(net.features(x), x[:, 3:]), net(x), atol=1e-5)
+    net.train()
+    assert not net.backbone.training and net.lat[0].training
+    res = export_onnx(net.eval(), net.spec, tmp_path / "stem_base.onnx", check=True, atol=1e-4)
+    assert max(res["max_abs_err"].values()) < 1e-4
+
+    loaded = {}
+
+    def fake_load(backbone, path=None):
+        loaded["sd"] = {k: v.clone() for k, v in backbone.state_dict().items()}
+        return len(loaded["sd"])
+    monkeypatch.setattr(pretrained, "load_efficientnet_lite0", fake_load)
+    data = [fake_base_sample(i, dist=3.0 + i)[0] for i in range(3)]
+    r = training.train_stem_base(str(tmp_path / "run"), 3, data, size="effl0", batch_size=4, jitters=2,
+                                 val_n=1, threads=1, warmup_steps=1, log_every=1, verbose=False)
+    assert r["step"] == 3 and "score" in r["val"]
+    sd = torch.load(tmp_path / "run" / "checkpoint.pt", weights_only=False)["model"]
+    assert all(torch.equal(sd[f"backbone.{k}"], v) for k, v in loaded["sd"].items())
+    fresh = build("stem_base", "effl0").state_dict()
+    assert not torch.equal(sd["lat.0.weight"], fresh["lat.0.weight"])

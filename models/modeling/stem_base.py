@@ -11,6 +11,13 @@ kept), the mean over the columns, then 1-D residual convs along the stem with di
 (1x1 conv) and one "no visible base" logit from the mean and max over the rows.
 
 Output ``logits`` ``(B, STRIP_H + 1)``: softmax over the rows and the no-base class.
+
+Size ``effl0`` (:class:`StemBaseNetL0`) reads the same strip with EfficientNet-Lite0's ImageNet
+features (kept frozen in training, as the trunk network's): the strip upsampled 2x to
+``(2 STRIP_H, 2 STRIP_W)``, its four feature maps reduced by 1x1 convs and stacked at stride 4
+with the inside flag, two 3x3 convs that halve the width, the mean over the columns upsampled
+to every strip row, then the same 1-D stage and heads. The sizes ``base`` and ``tiny`` learn
+their features from the synthetic strips alone.
 """
 from __future__ import annotations
 
@@ -18,12 +25,15 @@ from dataclasses import dataclass
 
 import torch
 from torch import nn
+from torch.nn import functional as F
 
 from monodbh.models.modeling.common import Res1d
+from monodbh.models.modeling.efficientnet_lite import FEATURE_CHANNELS, EfficientNetLite0
 from monodbh.models.modeling.registry import IMAGENET_MEAN, IMAGENET_STD, ModelSpec, Preprocess, TensorSpec, register
 from monodbh.models.runtime.stem_base import STRIP_H, STRIP_ROWS_PER_W, STRIP_SPAN_W, STRIP_W
 
-__all__ = ["StemBaseNetConfig", "STEM_BASE_CONFIGS", "StemBaseNet", "stem_base_spec", "build_stem_base"]
+__all__ = ["StemBaseNetConfig", "STEM_BASE_CONFIGS", "StemBaseNet", "StemBaseNetL0", "stem_base_spec",
+           "build_stem_base"]
 
 
 @dataclass(frozen=True)
@@ -34,11 +44,15 @@ class StemBaseNetConfig:
     ch: tuple[int, ...] = (16, 24, 32, 48, 64)
     seq_ch: int = 64
     dilations: tuple[int, ...] = (1, 2, 4, 8, 16)
+    #: ``"effl0"``: the 2-D stage is EfficientNet-Lite0 (:class:`StemBaseNetL0`; ``ch[0]`` is the
+    #: width each feature map is reduced to, ``ch[1]`` the fusion convs')
+    backbone: str = "cnn"
 
 
 STEM_BASE_CONFIGS: dict[str, StemBaseNetConfig] = {
     "base": StemBaseNetConfig(),
     "tiny": StemBaseNetConfig(ch=(4, 6, 8, 8, 8), seq_ch=8, dilations=(1, 2)),
+    "effl0": StemBaseNetConfig(ch=(32, 32), seq_ch=64, dilations=(1, 2, 4, 8, 16), backbone="effl0"),
 }
 
 
@@ -69,6 +83,71 @@ class StemBaseNet(nn.Module):
         return torch.cat([rows, self.none_head(g)], 1)  # (B, H + 1)
 
 
+class StemBaseNetL0(nn.Module):
+    """Size ``effl0`` (module docstring). ``forward(strip (B, 4, H, W)) -> logits (B, H + 1)``
+    is ``decode(features(strip), strip[:, 3:])``: the trainer caches ``features`` of its
+    strips, as the backbone is frozen there (and kept in eval mode while ``frozen``: its
+    BatchNorm statistics are ImageNet's).
+
+    Examples
+    --------
+    >>> net = StemBaseNetL0(STEM_BASE_CONFIGS["effl0"]).eval()
+    >>> net(torch.zeros(2, 4, STRIP_H, STRIP_W)).shape
+    torch.Size([2, 193])
+    """
+
+    def __init__(self, cfg: StemBaseNetConfig) -> None:
+        super().__init__()
+        lat, ch = cfg.ch[0], cfg.ch[1]
+        self.frozen = True
+        self.backbone = EfficientNetLite0()
+        self.lat = nn.ModuleList([nn.Conv2d(c, lat, 1) for c in FEATURE_CHANNELS])
+        layers: list[nn.Module] = [nn.Conv2d(lat * len(FEATURE_CHANNELS) + 1, ch, 1, bias=False),
+                                   nn.BatchNorm2d(ch), nn.ReLU(inplace=True)]
+        for _ in range(2):
+            layers += [nn.Conv2d(ch, ch, 3, stride=(1, 2), padding=1, bias=False), nn.BatchNorm2d(ch),
+                       nn.ReLU(inplace=True)]
+        self.fuse = nn.Sequential(*layers)
+        self.proj = nn.Sequential(nn.Conv1d(ch, cfg.seq_ch, 1, bias=False), nn.BatchNorm1d(cfg.seq_ch),
+                                  nn.ReLU(inplace=True))
+        self.stage1d = nn.Sequential(*[Res1d(cfg.seq_ch, d) for d in cfg.dilations])
+        self.row_head = nn.Conv1d(cfg.seq_ch, 1, 1)
+        self.none_head = nn.Linear(2 * cfg.seq_ch, 1)
+        self.backbone.eval()
+
+    def train(self, mode: bool = True) -> "StemBaseNetL0":
+        super().train(mode)
+        if self.frozen:
+            self.backbone.eval()
+        return self
+
+    def features(self, strip: torch.Tensor) -> list[torch.Tensor]:
+        """Strips ``(B, 4 or 3, H, W)`` -> the backbone's four maps of the strip's RGB upsampled
+        2x ``[(B, C_i, H / 2^(i+1), W / 2^(i+1))]``."""
+        if strip.ndim != 4 or strip.shape[1] not in (3, 4):
+            raise ValueError(f"expected strips (B, 4, H, W), got {tuple(strip.shape)}")
+        H, W = strip.shape[-2:]
+        return self.backbone(F.interpolate(strip[:, :3], size=(2 * H, 2 * W), mode="bilinear",
+                                           align_corners=False))
+
+    def decode(self, feats: list[torch.Tensor], inside: torch.Tensor) -> torch.Tensor:
+        """:meth:`features` and the inside flag ``(B, 1, H, W)`` -> logits ``(B, H + 1)``."""
+        H = inside.shape[-2]
+        size = feats[0].shape[-2:]
+        f = torch.cat([lat(f) if i == 0 else F.interpolate(lat(f), size=size, mode="bilinear", align_corners=False)
+                       for i, (lat, f) in enumerate(zip(self.lat, feats))]
+                      + [F.avg_pool2d(inside, 2)], 1)     # stride 4 of the 2x strip: half its rows
+        f = self.fuse(f).mean(dim=3)                   # (B, C, H / 2)
+        f = F.interpolate(f, size=H, mode="linear", align_corners=False)
+        f = self.stage1d(self.proj(f))                 # (B, C1, H)
+        rows = self.row_head(f)[:, 0]
+        g = torch.cat([f.mean(dim=2), f.amax(dim=2)], 1)
+        return torch.cat([rows, self.none_head(g)], 1)
+
+    def forward(self, strip: torch.Tensor) -> torch.Tensor:
+        return self.decode(self.features(strip), strip[:, 3:])
+
+
 def stem_base_spec(size: str) -> ModelSpec:
     """I/O contract of the stem-base network at ``size`` (any size has the same strip)."""
     return ModelSpec(
@@ -88,8 +167,10 @@ def stem_base_spec(size: str) -> ModelSpec:
 
 
 @register("stem_base", spec=stem_base_spec)
-def build_stem_base(size: str) -> StemBaseNet:
-    """Fresh stem-base network at ``size`` (``"base"`` ships, ``"tiny"`` for tests)."""
+def build_stem_base(size: str) -> StemBaseNet | StemBaseNetL0:
+    """Fresh stem-base network at ``size`` (``"base"``, ``"effl0"`` on ImageNet features: its
+    trainer loads them; ``"tiny"`` for tests)."""
     if size not in STEM_BASE_CONFIGS:
         raise ValueError(f"stem_base has sizes {sorted(STEM_BASE_CONFIGS)}, got {size!r}")
-    return StemBaseNet(STEM_BASE_CONFIGS[size])
+    cfg = STEM_BASE_CONFIGS[size]
+    return StemBaseNetL0(cfg) if cfg.backbone == "effl0" else StemBaseNet(cfg)

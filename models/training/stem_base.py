@@ -14,7 +14,10 @@ the geometry jittered as the pipeline's stem edges err (mid-point 0.1 / 0.3 widt
 along, width 8 %, direction 2.5 deg), and photometric augmentation and mirror flips on top.
 
 The strips are cut once into an in-memory bank (:func:`build_bank`; a few jittered copies per
-stem); training draws batches from it. Loss: cross-entropy against a Gaussian (1 row) over the
+stem); training draws batches from it. Size ``effl0`` (EfficientNet-Lite0's ImageNet features,
+frozen; the ``pretrained`` extra) draws its photometric augmentation and mirror once per bank
+strip, and the backbone's features of the bank are computed once (:func:`bank_features`); only
+the decoder trains. Loss: cross-entropy against a Gaussian (1 row) over the
 true row, or the no-base class.
 
 Validation (:func:`base_metrics`): ``recall`` (visible bases found within 5 % of the rope-to-
@@ -44,7 +47,8 @@ from monodbh.models.training.common import (AugmentConfig, DataSource, config_fr
 from monodbh.models.training.depth import undistort_sample
 from monodbh.models.training.tree import stem_point_cam
 
-__all__ = ["StemBaseTrainConfig", "stem_geometry", "tree_strips", "build_bank", "base_metrics", "train_stem_base"]
+__all__ = ["StemBaseTrainConfig", "stem_geometry", "tree_strips", "build_bank", "bank_features", "base_metrics",
+           "train_stem_base"]
 
 #: a found base counts as right within this relative error of the rope-to-base span
 GOOD_REL = 0.05
@@ -197,6 +201,35 @@ def build_bank(src: DataSource, indices: list[int], cfg: StemBaseTrainConfig, se
             "sample": np.asarray(acc["sample"], np.int64)}
 
 
+def _augmented_feed(bank: dict[str, np.ndarray], k: int, rng: np.random.Generator,
+                    aug: AugmentConfig) -> np.ndarray:
+    """Strip ``k`` of ``bank`` as a network feed ``(4, H, W)``, photometrically augmented and
+    mirrored as ``rng`` draws."""
+    x = strip_feed(photometric(bank["strip"][k], rng, aug), bank["inside"][k])
+    return x[..., ::-1] if rng.random() < aug.hflip else x
+
+
+def bank_features(model: Any, bank: dict[str, np.ndarray], aug: AugmentConfig, seed: int, batch: int = 64,
+                  verbose: bool = True) -> tuple[list[np.ndarray], np.ndarray]:
+    """A frozen backbone's features of every bank strip, each augmented once (from ``seed`` and
+    its index): ``([(N, C_i, h_i, w_i)] float16, inside (N, 1, H, W) float16)`` for
+    ``model.decode``."""
+    feats: list[list[np.ndarray]] = []
+    inside: list[np.ndarray] = []
+    t0 = time.perf_counter()
+    N = len(bank["row"])
+    for a in range(0, N, batch):
+        x = np.stack([_augmented_feed(bank, k, np.random.default_rng([seed, k, 29]), aug)
+                      for k in range(a, min(a + batch, N))])
+        with torch.no_grad():
+            fs = model.features(torch.from_numpy(np.ascontiguousarray(x)))
+        feats.append([f.numpy().astype(np.float16) for f in fs])
+        inside.append(x[:, 3:].astype(np.float16))
+        if verbose and (a // batch) % 20 == 19:
+            print(f"features: {a + batch}/{N} strips, {time.perf_counter() - t0:.0f} s", flush=True)
+    return [np.concatenate([f[i] for f in feats]) for i in range(len(feats[0]))], np.concatenate(inside)
+
+
 # --------------------------------------------------------------------------- metrics
 
 
@@ -271,7 +304,13 @@ def train_stem_base(run_dir: str, steps: int = 3000, data: Any = None, resume: b
         print(f"bank: {len(bank['row'])} training strips ({(bank['row'] >= 0).mean():.1%} with a base), "
               f"{len(vbank['row'])} validation strips", flush=True)
     model = build("stem_base", cfg.size).to(device)
-    opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+    frozen = hasattr(model, "decode")
+    if frozen:
+        from monodbh.models.training.pretrained import load_efficientnet_lite0
+        load_efficientnet_lite0(model.backbone)       # a resumed run's checkpoint holds the same
+        model.backbone.requires_grad_(False)
+    opt = torch.optim.AdamW([p for p in model.parameters() if p.requires_grad], lr=cfg.lr,
+                            weight_decay=cfg.weight_decay)
 
     sched = warmup_cosine(opt, cfg.warmup_steps, steps)
     aug = AugmentConfig(**{**cfg.augment, "blur_sigma": tuple(cfg.augment.get("blur_sigma", (0.3, 1.2)))})
@@ -279,21 +318,19 @@ def train_stem_base(run_dir: str, steps: int = 3000, data: Any = None, resume: b
     draw_p = np.where(bank["roped"], cfg.roped_weight, 1.0)
     draw_p = draw_p / draw_p.sum()
     timing = {"t": 0.0, "n": 0}
+    cached = bank_features(model, bank, aug, cfg.seed, verbose=verbose) if frozen else None
 
     def step_fn(step: int) -> dict[str, float]:
         t0 = time.perf_counter()
         rng = np.random.default_rng([cfg.seed, step, 23])
         idx = rng.choice(N, cfg.batch_size, p=draw_p)
-        xs = []
-        for k in idx:
-            s = photometric(bank["strip"][k], rng, aug)
-            x = strip_feed(s, bank["inside"][k])
-            if rng.random() < aug.hflip:
-                x = x[..., ::-1]
-            xs.append(x)
-        x = torch.from_numpy(np.ascontiguousarray(np.stack(xs))).to(device)
         y = torch.from_numpy(_targets(bank["row"][idx], cfg.label_sigma_rows)).to(device)
-        z = model(x)
+        if cached is not None:
+            z = model.decode([torch.from_numpy(f[idx].astype(np.float32)) for f in cached[0]],
+                             torch.from_numpy(cached[1][idx].astype(np.float32)))
+        else:
+            x = np.stack([_augmented_feed(bank, k, rng, aug) for k in idx])
+            z = model(torch.from_numpy(np.ascontiguousarray(x)).to(device))
         loss = -(y * F.log_softmax(z, 1)).sum(1).mean()
         opt.zero_grad(set_to_none=True)
         loss.backward()
@@ -308,7 +345,8 @@ def train_stem_base(run_dir: str, steps: int = 3000, data: Any = None, resume: b
         feeds = np.stack([strip_feed(s, m) for s, m in zip(vbank["strip"], vbank["inside"])])
         zs = []
         for k in range(0, len(feeds), 128):
-            zs.append(model(torch.from_numpy(feeds[k:k + 128]).to(device)).cpu().numpy())
+            with torch.no_grad():
+                zs.append(model(torch.from_numpy(feeds[k:k + 128]).to(device)).cpu().numpy())
         z = np.concatenate(zs)
         m = base_metrics(z, vbank["row"])
         r = vbank["roped"]
