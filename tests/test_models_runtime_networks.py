@@ -10,7 +10,7 @@ from monodbh.models.runtime import (ERROR_MODEL_KINDS, MANIFEST_PATH, MODELS_DIR
                                     load_manifest, load_networks)
 from monodbh.models.runtime.common import LEGACY_KINDS
 
-SHIPPED = ("segmenter", "depth", "tree", "stem_base", "stem_edge", "rope_verifier", "rope_finder", "trunk_head",
+SHIPPED = ("segmenter", "depth", "tree", "stem_base", "stem_base_net", "stem_edge", "rope_verifier", "rope_finder", "trunk_head",
            "trunk_net")
 
 

@@ -57,3 +57,25 @@ def test_shipped_stem_base_finder_on_the_bundled_example():
     assert (est.xy is None) == (est.p_base < finder.threshold)
     if est:
         assert est.xy[1] > H / 2 and abs(est.xy[0] - W / 2) < 1e-6   # on the strip's mid-line, below
+
+
+def test_the_second_network_is_asked_only_where_the_first_sees_no_base():
+    from monodbh.models.runtime import load_networks
+    from monodbh.models.runtime.stem_base import BaseEstimate, StemBaseFinder, StemBaseNetFinder
+
+    second = StemBaseNetFinder()
+    assert second.spec["kind"] == "stem_base_net" and second.spec["inputs"] == StemBaseFinder().spec["inputs"]
+    first = StemBaseFinder(second=second)
+    rgb = np.zeros((64, 64, 3), np.uint8)
+    none = BaseEstimate(None, 0.2, 50.0, "none")
+    found = BaseEstimate(np.array([10.0, 40.0]), 0.8, 30.0, "found")
+    first._find = lambda *a: found
+    second.find = lambda *a: (_ for _ in ()).throw(AssertionError("asked although the first found a base"))
+    assert first.find(rgb, (32, 10), (0, 1), 8.0) is found
+    first._find = lambda *a: none
+    second.find = lambda *a: found
+    assert first.find(rgb, (32, 10), (0, 1), 8.0) is found
+    second.find = lambda *a: BaseEstimate(None, 0.4, 20.0, "none")
+    assert first.find(rgb, (32, 10), (0, 1), 8.0) is none      # neither: the first's answer
+    nets = load_networks(threads=1)
+    assert isinstance(nets.stem_base.second, StemBaseNetFinder)

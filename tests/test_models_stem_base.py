@@ -171,3 +171,36 @@ def test_effl0_stem_base_trains_its_decoder_on_a_frozen_backbone(tmp_path, monke
     assert all(torch.equal(sd[f"backbone.{k}"], v) for k, v in loaded["sd"].items())
     fresh = build("stem_base", "effl0").state_dict()
     assert not torch.equal(sd["lat.0.weight"], fresh["lat.0.weight"])
+
+
+def test_ship_net_lists_an_effl0_export_as_the_second_network(tmp_path):
+    import onnx
+
+    from monodbh.models.runtime.common import MANIFEST_PATH, MODELS_DIR, SPEC_METADATA_KEY, load_manifest
+    from monodbh.models.runtime.stem_base import StemBaseNetFinder
+    from monodbh.models.training.stem_base import ship_net
+
+    export = tmp_path / "run" / "export"
+    export.mkdir(parents=True)
+    model = onnx.load(str(MODELS_DIR / "stem_base_net_int8.onnx"))    # as dbh export writes it: kind stem_base
+    for p in model.metadata_props:
+        if p.key == SPEC_METADATA_KEY:
+            p.value = json.dumps({**json.loads(p.value), "kind": "stem_base"})
+    onnx.save(model, str(export / "stem_base_int8.onnx"))
+    report = {"kind": "stem_base", "size": "effl0", "threads": 2, "exported_at": "t",
+              "training": {"steps": 3, "size": "effl0", "data": {}, "seed": 0},
+              "int8": {"recipe": "u8s8_qdq_all", "latency_ms": 4.0, "metrics": {"recall": 0.5}}}
+    (export / "report.json").write_text(json.dumps(report))
+    models = tmp_path / "models"
+    models.mkdir()
+    man = json.loads(MANIFEST_PATH.read_text())
+    del man["models"]["stem_base_net"]
+    (models / "manifest.json").write_text(json.dumps(man))
+    ship_net(tmp_path / "run", models)
+    entry = load_manifest(models / "manifest.json")["models"]["stem_base_net"]
+    assert entry["file"] == "stem_base_net_int8.onnx" and entry["spec"]["kind"] == "stem_base_net"
+    assert entry["validation"]["int8"] == {"recall": 0.5}
+    assert StemBaseNetFinder(models / entry["file"]).spec["kind"] == "stem_base_net"
+    (export / "report.json").write_text(json.dumps({**report, "size": "base"}))
+    with pytest.raises(ValueError, match="not an exported stem_base effl0 run"):
+        ship_net(tmp_path / "run", models)

@@ -18,16 +18,16 @@ from monodbh.models.runtime.depth import DepthPredictor
 from monodbh.models.runtime.rope_finder import RopeFinder
 from monodbh.models.runtime.rope_verifier import RopeVerifier
 from monodbh.models.runtime.segmenter import Segmenter
-from monodbh.models.runtime.stem_base import StemBaseFinder
+from monodbh.models.runtime.stem_base import StemBaseFinder, StemBaseNetFinder
 from monodbh.models.runtime.stem_edge import StemEdgeFinder
 from monodbh.models.runtime.tree import TreePredictor
 
 __all__ = ["ERROR_MODEL_KINDS", "fresh_error_model", "Networks", "load_networks"]
 
-#: the networks the measured error model depends on (those of them that are shipped; the stem-base
-#: network is optional; the rope verifier and the rope finder only decide which photos are
-#: measured, not how well, so they are not among them)
-ERROR_MODEL_KINDS: tuple[str, ...] = ("segmenter", "depth", "tree", "stem_base")
+#: the networks the measured error model depends on (those of them that are shipped; the two
+#: stem-base networks are optional; the rope verifier and the rope finder only decide which photos
+#: are measured, not how well, so they are not among them)
+ERROR_MODEL_KINDS: tuple[str, ...] = ("segmenter", "depth", "tree", "stem_base", "stem_base_net")
 
 
 def fresh_error_model(manifest: dict[str, Any], depth_flip_tta: bool = True) -> dict[str, Any]:
@@ -66,7 +66,8 @@ class Networks:
     depth : DepthPredictor
     tree : TreePredictor
     stem_base : StemBaseFinder or None
-        None when none is shipped (the edge tracker then looks for the stem base alone).
+        None when none is shipped (the edge tracker then looks for the stem base alone); its
+        ``second`` is the second stem-base network (:class:`StemBaseNetFinder`) where shipped.
     stem_edge : StemEdgeFinder or None
         None when none is shipped (the stem's edges are then the photo's gradients near the mask's).
     rope_verifier : RopeVerifier or None
@@ -178,6 +179,9 @@ def load_networks(models_dir: str | Path | None = None, *, threads: int = 2, dep
     models = manifest.get("models", {})
     opts = dict(threads=threads, spin=spin)
     stem_base = _optional(models, mdir, "stem_base")
+    base_net = _optional(models, mdir, "stem_base_net")
+    second = None if base_net is None else StemBaseNetFinder(base_net, manifest=manifest,
+                                                             threshold=stem_base_threshold, **opts)
     stem_edge = _optional(models, mdir, "stem_edge")
     rope_verifier = _optional(models, mdir, "rope_verifier")
     rope_finder = _optional(models, mdir, "rope_finder")
@@ -188,8 +192,9 @@ def load_networks(models_dir: str | Path | None = None, *, threads: int = 2, dep
         segmenter=Segmenter(_required(models, mdir, "segmenter"), manifest=manifest, trunk_head=trunk_head, **opts),
         depth=DepthPredictor(_required(models, mdir, "depth"), flip_tta=depth_flip_tta, **opts),
         tree=TreePredictor(_required(models, mdir, "tree"), **opts),
-        stem_base=None if stem_base is None else StemBaseFinder(stem_base, manifest=manifest,
-                                                                threshold=stem_base_threshold, **opts),
+        stem_base=second if stem_base is None else StemBaseFinder(stem_base, manifest=manifest,
+                                                                  threshold=stem_base_threshold,
+                                                                  second=second, **opts),
         stem_edge=None if stem_edge is None else StemEdgeFinder(stem_edge, manifest=manifest, **opts),
         rope_verifier=None if rope_verifier is None else RopeVerifier(rope_verifier, manifest=manifest, **opts),
         rope_finder=None if rope_finder is None else RopeFinder(rope_finder, manifest=manifest, **opts),

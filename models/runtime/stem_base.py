@@ -11,6 +11,11 @@ The strip (:func:`stem_strip`)
     (rows down the stem, ``STRIP_ROWS_PER_W`` rows per stem width; row 0 is the rope).
     Channels: the normalised RGB (ImageNet mean/std) and a 0/1 flag of pixels inside the photo.
 
+A second network (:class:`StemBaseNetFinder`, kind ``stem_base_net``, where shipped) reads the
+same strip with ImageNet features; the finder asks it where the first sees no base. The first
+was trained on the generator's look alone and finds far fewer bases on a look it never saw; the
+second finds fewer on the default look but holds on others (``docs/decisions/stem-base.md``).
+
 The output (:class:`StemBaseFinder`)
     ``logits`` ``(1, STRIP_H + 1)``: a softmax over "the base is at row r" (r = 0 .. STRIP_H-1)
     and a last class "no visible base in the strip" (hidden behind grass or bushes, outside the
@@ -33,7 +38,7 @@ from monodbh.models.runtime.common import OnnxPredictor, affine_patch, stack_fee
 
 __all__ = ["STRIP_H", "STRIP_W", "STRIP_ROWS_PER_W", "STRIP_SPAN_W", "STRIP_LEN_W",
            "strip_geometry", "stem_strip", "strip_feed", "strip_row_to_xy", "decode_base_logits",
-           "BaseEstimate", "StemBaseFinder"]
+           "BaseEstimate", "StemBaseFinder", "StemBaseNetFinder"]
 
 # The strip's shape: structural facts of the trained network (its input), shared with training.
 STRIP_H: int = 192           #: rows down the stem
@@ -160,6 +165,9 @@ class StemBaseFinder(OnnxPredictor):
     threshold : float, optional
         ``p_base`` needed to report a base (default: the manifest's ``extra.p_threshold``,
         else 0.7; the pipeline's, ``docs/decisions/stem-base.md``).
+    second : StemBaseFinder, optional
+        Asked where this network sees no base (:meth:`find`); the shipped second network is a
+        :class:`StemBaseNetFinder`.
 
     Examples
     --------
@@ -172,10 +180,11 @@ class StemBaseFinder(OnnxPredictor):
 
     def __init__(self, path: str | os.PathLike | None = None, threads: int = 2,
                  manifest: dict[str, Any] | None = None, threshold: float | None = None, *,
-                 spin: bool = False) -> None:
+                 spin: bool = False, second: "StemBaseFinder | None" = None) -> None:
         super().__init__(self.kind, path, threads, manifest, spin=spin)
         extra = self.spec.get("extra", {}) or {}
         self.threshold = float(threshold if threshold is not None else extra.get("p_threshold", 0.7))
+        self.second = second
 
     def logits(self, rgb: np.ndarray, top_xy, along, width_px: float) -> np.ndarray:
         """Raw ``(STRIP_H + 1,)`` logits for the strip below ``top_xy``."""
@@ -184,7 +193,15 @@ class StemBaseFinder(OnnxPredictor):
         return out["logits"][0]
 
     def find(self, rgb: np.ndarray, top_xy, along, width_px: float) -> BaseEstimate:
-        """The base below the rope (see the class docstring); flipped-strip averaging."""
+        """The base below the rope (see the class docstring), flipped-strip averaging; where none
+        is found, the ``second`` network's base if it finds one."""
+        est = self._find(rgb, top_xy, along, width_px)
+        if est or self.second is None:
+            return est
+        alt = self.second.find(rgb, top_xy, along, width_px)
+        return alt if alt else est
+
+    def _find(self, rgb: np.ndarray, top_xy, along, width_px: float) -> BaseEstimate:
         strip, inside = stem_strip(rgb, top_xy, along, width_px)
         x = strip_feed(strip, inside)[None]
         z = self.run({"strip": x})["logits"][0]
@@ -193,3 +210,11 @@ class StemBaseFinder(OnnxPredictor):
         if p < self.threshold:
             return BaseEstimate(None, p, row, "none")
         return BaseEstimate(strip_row_to_xy(row, top_xy, along, width_px), p, row, "found")
+
+
+class StemBaseNetFinder(StemBaseFinder):
+    """The second stem-base network (kind ``"stem_base_net"``, ``models/stem_base_net_int8.onnx``):
+    the same strip in and logits out as :class:`StemBaseFinder`, read with EfficientNet-Lite0's
+    ImageNet features (``monodbh.models.modeling.stem_base.StemBaseNetL0``)."""
+
+    kind = "stem_base_net"

@@ -24,6 +24,10 @@ Validation (:func:`base_metrics`): ``recall`` (visible bases found within 5 % of
 base span, the scale error they give), ``precision`` (found bases that are within it),
 ``none_acc`` and the spec metric ``score`` (the share of strips answered right: the base
 within 5 %, or no base where none is visible).
+
+:func:`ship_net` (``python -m monodbh.models.training.stem_base ship-net RUN``) ships an exported
+``effl0`` run as the second stem-base network (``models/stem_base_net_int8.onnx``), which
+``StemBaseFinder`` asks where the first network sees no base.
 """
 from __future__ import annotations
 
@@ -397,3 +401,58 @@ def evaluate(predict: Callable[[dict[str, np.ndarray]], dict[str, np.ndarray]], 
     b = _eval_bank(n, seed, data)
     z = np.concatenate([predict({"strip": strip_feed(s, m)[None]})["logits"] for s, m in zip(b["strip"], b["inside"])])
     return base_metrics(z, b["row"])
+
+
+# --------------------------------------------------------------------------- the second network
+
+
+def ship_net(run_dir: str | Any, models_dir: str | Any | None = None) -> dict[str, Any]:
+    """Ship the int8 file ``dbh export RUN`` wrote for an ``effl0`` run as the second stem-base
+    network (kind ``stem_base_net``, ``models_dir/stem_base_net_int8.onnx``, listed in its
+    manifest with the export's scores): ``StemBaseFinder`` asks it where the first sees no
+    base. The error model then needs measuring again (``docs/TRAINING.md``)."""
+    import hashlib
+    import json
+    import os
+    from pathlib import Path
+
+    import onnx
+
+    from monodbh.models.runtime.common import MODELS_DIR, SPEC_METADATA_KEY, load_manifest
+    from monodbh.models.training.common import atomic_write_text
+
+    run_dir, models_dir = Path(run_dir), Path(models_dir or MODELS_DIR)
+    report = json.loads((run_dir / "export" / "report.json").read_text())
+    if report.get("kind") != "stem_base" or report.get("size") != "effl0":
+        raise ValueError(f"{run_dir}: not an exported stem_base effl0 run ({report.get('kind')}, {report.get('size')})")
+    model = onnx.load(str(run_dir / "export" / "stem_base_int8.onnx"))
+    meta = {p.key: p for p in model.metadata_props}
+    spec = json.loads(meta[SPEC_METADATA_KEY].value)
+    spec["kind"] = "stem_base_net"
+    meta[SPEC_METADATA_KEY].value = json.dumps(spec)
+    out, tmp = models_dir / "stem_base_net_int8.onnx", models_dir / "stem_base_net_int8.new.onnx"
+    onnx.save(model, str(tmp))
+    os.replace(tmp, out)
+    man_path = models_dir / "manifest.json"
+    manifest = load_manifest(man_path)
+    io = {k: [{f: t[f] for f in ("dtype", "name", "shape")} for t in spec[k]] for k in ("inputs", "outputs")}
+    manifest["models"]["stem_base_net"] = {
+        "file": out.name, "sha256": hashlib.sha256(out.read_bytes()).hexdigest(), "spec": spec, **io,
+        "extra": spec.get("extra", {}), "precision": "int8", "quant_recipe": report["int8"]["recipe"],
+        "latency_ms": {"int8": report["int8"]["latency_ms"], "threads": report.get("threads")},
+        "training": {k: report["training"].get(k) for k in ("steps", "size", "data", "seed")},
+        "validation": {"int8": report["int8"]["metrics"]}, "exported_at": report.get("exported_at")}
+    atomic_write_text(man_path, json.dumps(manifest, indent=2, sort_keys=True) + "\n")
+    return {"stem_base_net": str(out), "bytes": out.stat().st_size}
+
+
+if __name__ == "__main__":
+    import argparse
+
+    ap = argparse.ArgumentParser(prog="python -m monodbh.models.training.stem_base",
+                                 description="ship-net RUN: ship an exported effl0 run as the second stem-base network")
+    ap.add_argument("command", choices=["ship-net"])
+    ap.add_argument("run")
+    ap.add_argument("--models-dir", default=None)
+    a = ap.parse_args()
+    print(ship_net(a.run, a.models_dir))

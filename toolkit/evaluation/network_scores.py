@@ -9,6 +9,8 @@ int8 models are scored by their training's evaluation hooks
 - depth: ``absrel`` and ``ms_absrel`` (median-scaled) at the network's input;
 - tree: ``g_acc`` and ``g_within10`` (thickness within 10 %);
 - stem_base: ``recall`` (bases found within 5 % of the strip) and ``precision``;
+- stem_base_net: the same for the two stem-base networks as ``StemBaseFinder`` asks them (the
+  second where the first's base is under the pipeline's threshold);
 - stem_edge: ``score`` (patches whose width is within the training's tolerance) and
   ``width_median_pct``, on the exact patches of the folder's last 60 scenes;
 - rope_finder: ``recall`` and ``tile_auc`` on a bank cut from the folder
@@ -44,6 +46,7 @@ FIGURES = (("segmenter", "roped_iou", False), ("segmenter", "roped_detected", Fa
            ("depth", "absrel", True), ("depth", "ms_absrel", True),
            ("tree", "g_acc", False), ("tree", "g_within10", False),
            ("stem_base", "recall", False), ("stem_base", "precision", False),
+           ("stem_base_net", "recall", False), ("stem_base_net", "precision", False),
            ("stem_edge", "score", False), ("stem_edge", "width_median_pct", True),
            ("rope_finder", "recall", False), ("rope_finder", "tile_auc", False),
            ("trunk_head", "iou", False), ("trunk_net", "iou", False))
@@ -56,8 +59,8 @@ def _look(folder: Path) -> str:
 
 
 def score_folder(folder: str | Path, n: int = 120, seed: int = 0, models_dir: Optional[Path] = None,
-                 kinds: Sequence[str] = ("segmenter", "depth", "tree", "stem_base", "stem_edge", "rope_finder",
-                                         "trunk_head", "trunk_net")) -> dict:
+                 kinds: Sequence[str] = ("segmenter", "depth", "tree", "stem_base", "stem_base_net", "stem_edge",
+                                         "rope_finder", "trunk_head", "trunk_net")) -> dict:
     """Each shipped network's evaluation metrics on the samples of ``folder``.
 
     Parameters
@@ -95,6 +98,9 @@ def score_folder(folder: str | Path, n: int = 120, seed: int = 0, models_dir: Op
             except ValueError:                      # rendered before the stem label
                 out[kind] = {}
             continue
+        if kind == "stem_base_net":
+            out[kind] = _base_pair_scores(mdir, entries, n, seed, src) if kind in entries else {}
+            continue
         path = mdir / entries[kind]["file"]
         spec = shipped_spec(get_spec(kind), path)          # the file's own conventions
         sess = make_session(path, threads=2)
@@ -108,6 +114,29 @@ def score_folder(folder: str | Path, n: int = 120, seed: int = 0, models_dir: Op
         else:
             out[kind] = evaluate_kind(kind, lambda f: run_session(sess, f), n, seed, spec, src)
     return out
+
+
+def _base_pair_scores(mdir: Path, entries: dict, n: int, seed: int, src) -> dict:
+    """The stem-base hook's metrics of the first network's logits, or the second's where the
+    first's base probability is under the pipeline's threshold and the second's is not."""
+    from monodbh.models.export.cli_impl import shipped_spec
+    from monodbh.models.export.onnx_io import make_session, run_session
+    from monodbh.models.modeling.registry import get_spec
+    from monodbh.models.runtime.stem_base import decode_base_logits
+    from monodbh.models.training.common import evaluate_kind
+
+    first = make_session(mdir / entries["stem_base"]["file"], threads=2)
+    second = make_session(mdir / entries["stem_base_net"]["file"], threads=2)
+    thr = float((entries["stem_base"].get("extra") or {}).get("p_threshold", 0.7))
+
+    def pair(feed):
+        z = run_session(first, feed)
+        if decode_base_logits(z["logits"][0])[1] >= thr:
+            return z
+        z2 = run_session(second, feed)
+        return z2 if decode_base_logits(z2["logits"][0])[1] >= thr else z
+    spec = shipped_spec(get_spec("stem_base"), mdir / entries["stem_base"]["file"])
+    return evaluate_kind("stem_base", pair, n, seed, spec, src)
 
 
 def ratio(a: float, b: float, lower_is_better: bool) -> float:
@@ -130,7 +159,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--models-dir", type=Path, default=None)
     ap.add_argument("--json", type=Path, default=None)
-    ap.add_argument("--kinds", default="segmenter,depth,tree,stem_base,stem_edge,rope_finder,trunk_head,trunk_net",
+    ap.add_argument("--kinds", default="segmenter,depth,tree,stem_base,stem_base_net,stem_edge,rope_finder,trunk_head,trunk_net",
                     help="comma-separated networks to score")
     a = ap.parse_args(argv)
     kinds = [k for k in a.kinds.split(",") if k]
@@ -142,7 +171,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
             ap.error(f"{f}: not a folder")
     res = {str(f): score_folder(f, a.n, a.seed, a.models_dir, kinds) for f in a.folders}
     names = list(res)
-    head = f"{'network':<12}{'metric':<16}" + "".join(f"{Path(k).name + ' (' + res[k]['look'] + ')':>28}" for k in names)
+    head = f"{'network':<14}{'metric':<16}" + "".join(f"{Path(k).name + ' (' + res[k]['look'] + ')':>28}" for k in names)
     if len(names) > 1:
         head += f"{'worse by':>10}"
     print(head)
@@ -150,7 +179,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         if kind not in kinds:
             continue
         vals = [res[k].get(kind, {}).get(m) for k in names]
-        row = f"{kind:<12}{m:<16}" + "".join(f"{v:>28.3f}" if v is not None else f"{'-':>28}" for v in vals)
+        row = f"{kind:<14}{m:<16}" + "".join(f"{v:>28.3f}" if v is not None else f"{'-':>28}" for v in vals)
         if len(names) > 1 and None not in (vals[0], vals[-1]):
             row += f"{ratio(vals[0], vals[-1], low):>10.2f}"
         print(row)
