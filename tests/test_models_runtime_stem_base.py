@@ -67,6 +67,8 @@ def test_the_second_network_is_asked_only_where_the_first_sees_no_base():
     assert second.spec["kind"] == "stem_base_net" and second.spec["inputs"] == StemBaseFinder().spec["inputs"]
     first = StemBaseFinder(second=second)
     rgb = np.zeros((64, 64, 3), np.uint8)
+    assert second.find(rgb, (32, 10), (0, 1), 8.0).network == "stem_base_net"    # the result says who read it
+    assert first._find(rgb, (32, 10), (0, 1), 8.0).network == "stem_base"
     none = BaseEstimate(None, 0.2, 50.0, "none")
     found = BaseEstimate(np.array([10.0, 40.0]), 0.8, 30.0, "found")
     first._find = lambda *a: found

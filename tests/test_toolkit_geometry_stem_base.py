@@ -212,3 +212,7 @@ def test_a_base_that_moves_lower_in_a_strip_cut_a_little_wider_is_read_between_t
     steady = lambda *a: SimpleNamespace(xy=(240.0, 449.0), p_base=0.95)
     b, flags, res = find(steady)
     assert b.status == "network" and flags == ["stem_base_from_network"] and res.debug["base_lower_nearby"] == 0.0
+    # a base the second stem-base network found says so
+    second = lambda *a: SimpleNamespace(xy=(240.0, 449.0), p_base=0.95, network="stem_base_net")
+    b, flags, _ = find(second)
+    assert b.status == "network" and flags == ["stem_base_from_network", "stem_base_second_network"]

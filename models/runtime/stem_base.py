@@ -142,12 +142,14 @@ class BaseEstimate:
     p_base : probability that the strip shows the base.
     row : strip row of the base (fractional; rows of ``width_px / STRIP_ROWS_PER_W`` pixels).
     status : ``"found"`` or ``"none"`` (``p_base`` under the threshold).
+    network : the kind of the network that read it (``"stem_base"``, or ``"stem_base_net"``: the second).
     """
 
     xy: np.ndarray | None
     p_base: float
     row: float
     status: str
+    network: str = "stem_base"
 
     def __bool__(self) -> bool:
         return self.xy is not None
@@ -208,8 +210,8 @@ class StemBaseFinder(OnnxPredictor):
         z2 = self.run({"strip": np.ascontiguousarray(x[..., ::-1])})["logits"][0]
         row, p = decode_base_logits(0.5 * (z + z2))
         if p < self.threshold:
-            return BaseEstimate(None, p, row, "none")
-        return BaseEstimate(strip_row_to_xy(row, top_xy, along, width_px), p, row, "found")
+            return BaseEstimate(None, p, row, "none", self.kind)
+        return BaseEstimate(strip_row_to_xy(row, top_xy, along, width_px), p, row, "found", self.kind)
 
 
 class StemBaseNetFinder(StemBaseFinder):

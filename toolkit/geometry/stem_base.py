@@ -140,6 +140,8 @@ def _base_from_network(perc: Perception, edges: TrunkEdges, axis: StemAxis, up_s
         flags.append("stem_base_above_visible_stem")
         return StemBase(None, "occluded", {"end_xy": end, "network_xy": xy})
     flags.append("stem_base_from_network")
+    if getattr(est, "network", "stem_base") == "stem_base_net":
+        flags.append("stem_base_second_network")
     t_b = time.perf_counter()
     lower, lower_xy = (_lower_base_nearby(perc.base_finder, perc.rgb, top, along, float(edges.width_px), xy, config)
                        if config.ambiguity_strips and est.p_base < config.ambiguity_p_max else (0.0, None))

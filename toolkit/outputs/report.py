@@ -52,6 +52,7 @@ FLAG_TEXT = {
     "distance_calibrated": "the network's distance was corrected by its measured bias",
     "scale_capped_by_visible_stem": "the distance was capped by the visible stem's length",
     "stem_base_from_network": "the stem's foot was found by the stem-base network",
+    "stem_base_second_network": "the stem's foot was found by the second stem-base network (the first saw none)",
     "stem_base_from_user": "the stem's foot was tapped by the user",
     "stem_base_user_rejected": "the tapped foot is not below the marker: not used",
     "stem_base_occluded": "the stem's foot is hidden (bushes, another trunk)",
