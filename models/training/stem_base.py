@@ -31,9 +31,13 @@ within 5 %, or no base where none is visible).
 """
 from __future__ import annotations
 
+import hashlib
+import json
 import math
+import os
 import time
 from dataclasses import asdict, dataclass, field
+from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
@@ -411,11 +415,6 @@ def ship_net(run_dir: str | Any, models_dir: str | Any | None = None) -> dict[st
     network (kind ``stem_base_net``, ``models_dir/stem_base_net_int8.onnx``, listed in its
     manifest with the export's scores): ``StemBaseFinder`` asks it where the first sees no
     base. The error model then needs measuring again (``docs/TRAINING.md``)."""
-    import hashlib
-    import json
-    import os
-    from pathlib import Path
-
     import onnx
 
     from monodbh.models.runtime.common import MODELS_DIR, SPEC_METADATA_KEY, load_manifest
