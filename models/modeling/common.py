@@ -11,7 +11,7 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-__all__ = ["ConvBNAct", "BasicBlock", "Res1d", "MLP", "sine_position_encoding", "count_parameters",
+__all__ = ["ConvBNAct", "dilated_body", "BasicBlock", "Res1d", "MLP", "sine_position_encoding", "count_parameters",
            "NEG_INF"]
 
 #: Large negative float used for additive attention masks (finite: safe for softmax, fp16 and
@@ -34,6 +34,18 @@ class ConvBNAct(nn.Sequential):
         if act is not None:
             layers.append(act())
         super().__init__(*layers)
+
+
+def dilated_body(c_in: int, ch: int, dilations: tuple[int, ...]) -> nn.Sequential:
+    """One 3x3 conv (no bias) -> BatchNorm -> ReLU per dilation (padding = dilation), ``c_in``
+    then ``ch`` channels. Shapes: ``(B, c_in, H, W) -> (B, ch, H, W)`` (``c_in`` out without
+    dilations)."""
+    layers: list[nn.Module] = []
+    c = c_in
+    for d in dilations:
+        layers += [nn.Conv2d(c, ch, 3, padding=d, dilation=d, bias=False), nn.BatchNorm2d(ch), nn.ReLU(inplace=True)]
+        c = ch
+    return nn.Sequential(*layers)
 
 
 class Res1d(nn.Module):

@@ -56,6 +56,25 @@ STEM_BASE_CONFIGS: dict[str, StemBaseNetConfig] = {
 }
 
 
+def _add_sequence_heads(net: nn.Module, c_in: int, cfg: StemBaseNetConfig) -> None:
+    """The 1-D stage and the two heads both sizes share, as ``net``'s ``proj``, ``stage1d``,
+    ``row_head`` and ``none_head`` (the names the shipped files' weights carry)."""
+    net.proj = nn.Sequential(nn.Conv1d(c_in, cfg.seq_ch, 1, bias=False), nn.BatchNorm1d(cfg.seq_ch),
+                             nn.ReLU(inplace=True))
+    net.stage1d = nn.Sequential(*[Res1d(cfg.seq_ch, d) for d in cfg.dilations])
+    net.row_head = nn.Conv1d(cfg.seq_ch, 1, 1)
+    net.none_head = nn.Linear(2 * cfg.seq_ch, 1)
+
+
+def _sequence_logits(net: nn.Module, f: torch.Tensor) -> torch.Tensor:
+    """Features along the stem ``(B, C, H)`` -> logits ``(B, H + 1)``: per-row base logits and the
+    no-base logit from the mean and max over the rows (:func:`_add_sequence_heads`' layers)."""
+    f = net.stage1d(net.proj(f))                       # (B, C1, H)
+    rows = net.row_head(f)[:, 0]                       # (B, H)
+    g = torch.cat([f.mean(dim=2), f.amax(dim=2)], 1)
+    return torch.cat([rows, net.none_head(g)], 1)      # (B, H + 1)
+
+
 class StemBaseNet(nn.Module):
     """See the module docstring. ``forward(strip (B, 4, H, W)) -> logits (B, H + 1)``."""
 
@@ -69,18 +88,10 @@ class StemBaseNet(nn.Module):
                        nn.ReLU(inplace=True)]
             cin = c
         self.stage2d = nn.Sequential(*layers)
-        self.proj = nn.Sequential(nn.Conv1d(cin, cfg.seq_ch, 1, bias=False), nn.BatchNorm1d(cfg.seq_ch),
-                                  nn.ReLU(inplace=True))
-        self.stage1d = nn.Sequential(*[Res1d(cfg.seq_ch, d) for d in cfg.dilations])
-        self.row_head = nn.Conv1d(cfg.seq_ch, 1, 1)
-        self.none_head = nn.Linear(2 * cfg.seq_ch, 1)
+        _add_sequence_heads(self, cin, cfg)
 
     def forward(self, strip: torch.Tensor) -> torch.Tensor:
-        f = self.stage2d(strip).mean(dim=3)            # (B, C, H)
-        f = self.stage1d(self.proj(f))                 # (B, C1, H)
-        rows = self.row_head(f)[:, 0]                  # (B, H)
-        g = torch.cat([f.mean(dim=2), f.amax(dim=2)], 1)
-        return torch.cat([rows, self.none_head(g)], 1)  # (B, H + 1)
+        return _sequence_logits(self, self.stage2d(strip).mean(dim=3))
 
 
 class StemBaseNetL0(nn.Module):
@@ -108,11 +119,7 @@ class StemBaseNetL0(nn.Module):
             layers += [nn.Conv2d(ch, ch, 3, stride=(1, 2), padding=1, bias=False), nn.BatchNorm2d(ch),
                        nn.ReLU(inplace=True)]
         self.fuse = nn.Sequential(*layers)
-        self.proj = nn.Sequential(nn.Conv1d(ch, cfg.seq_ch, 1, bias=False), nn.BatchNorm1d(cfg.seq_ch),
-                                  nn.ReLU(inplace=True))
-        self.stage1d = nn.Sequential(*[Res1d(cfg.seq_ch, d) for d in cfg.dilations])
-        self.row_head = nn.Conv1d(cfg.seq_ch, 1, 1)
-        self.none_head = nn.Linear(2 * cfg.seq_ch, 1)
+        _add_sequence_heads(self, ch, cfg)
         self.backbone.eval()
 
     def train(self, mode: bool = True) -> "StemBaseNetL0":
@@ -138,11 +145,7 @@ class StemBaseNetL0(nn.Module):
                        for i, (lat, f) in enumerate(zip(self.lat, feats))]
                       + [F.avg_pool2d(inside, 2)], 1)     # stride 4 of the 2x strip: half its rows
         f = self.fuse(f).mean(dim=3)                   # (B, C, H / 2)
-        f = F.interpolate(f, size=H, mode="linear", align_corners=False)
-        f = self.stage1d(self.proj(f))                 # (B, C1, H)
-        rows = self.row_head(f)[:, 0]
-        g = torch.cat([f.mean(dim=2), f.amax(dim=2)], 1)
-        return torch.cat([rows, self.none_head(g)], 1)
+        return _sequence_logits(self, F.interpolate(f, size=H, mode="linear", align_corners=False))
 
     def forward(self, strip: torch.Tensor) -> torch.Tensor:
         return self.decode(self.features(strip), strip[:, 3:])

@@ -20,6 +20,8 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
+from monodbh.models.modeling.common import dilated_body
+
 __all__ = ["TrunkHeadConfig", "TrunkHead", "trunk_head_spec"]
 
 
@@ -46,14 +48,8 @@ class TrunkHead(nn.Module):
     def __init__(self, cfg: TrunkHeadConfig = TrunkHeadConfig()) -> None:
         super().__init__()
         self.cfg = cfg
-        layers: list[nn.Module] = []
-        c = cfg.in_ch
-        for d in cfg.dilations:
-            layers += [nn.Conv2d(c, cfg.ch, 3, padding=d, dilation=d, bias=False),
-                       nn.BatchNorm2d(cfg.ch), nn.ReLU(inplace=True)]
-            c = cfg.ch
-        self.body = nn.Sequential(*layers)
-        self.out = nn.Conv2d(c, 1, 1)
+        self.body = dilated_body(cfg.in_ch, cfg.ch, cfg.dilations)
+        self.out = nn.Conv2d(cfg.ch if cfg.dilations else cfg.in_ch, 1, 1)
 
     def forward(self, feats: torch.Tensor) -> torch.Tensor:
         if feats.ndim != 4 or feats.shape[1] != self.cfg.in_ch:

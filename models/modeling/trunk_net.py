@@ -17,6 +17,7 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
+from monodbh.models.modeling.common import dilated_body
 from monodbh.models.modeling.efficientnet_lite import FEATURE_CHANNELS, EfficientNetLite0
 
 __all__ = ["TrunkNetConfig", "TrunkNetHead", "TrunkNet", "trunk_net_spec"]
@@ -47,14 +48,9 @@ class TrunkNetHead(nn.Module):
         super().__init__()
         self.cfg = cfg
         self.lat = nn.ModuleList([nn.Conv2d(c, cfg.lat, 1) for c in FEATURE_CHANNELS])
-        layers: list[nn.Module] = []
-        c = cfg.lat * len(FEATURE_CHANNELS)
-        for d in cfg.dilations:
-            layers += [nn.Conv2d(c, cfg.ch, 3, padding=d, dilation=d, bias=False),
-                       nn.BatchNorm2d(cfg.ch), nn.ReLU(inplace=True)]
-            c = cfg.ch
-        self.body = nn.Sequential(*layers)
-        self.out = nn.Conv2d(c, 1, 1)
+        c_in = cfg.lat * len(FEATURE_CHANNELS)
+        self.body = dilated_body(c_in, cfg.ch, cfg.dilations)
+        self.out = nn.Conv2d(cfg.ch if cfg.dilations else c_in, 1, 1)
 
     def forward(self, feats: list[torch.Tensor]) -> torch.Tensor:
         if len(feats) != len(self.lat) or any(f.shape[1] != c for f, c in zip(feats, FEATURE_CHANNELS)):
