@@ -39,7 +39,9 @@ def synth(
                              "0.05-0.6 m high and a bush in front of the foot on 35 % (stem-base training)."),
     view: str = typer.Option("level", "--view", help="level (the camera at about breast height, the "
                              "default), upward (from 1-5 m, up the trunk into the crown, 30-70 degrees up; trunk "
-                             "training) or mixed (upward on a third)."),
+                             "training), mixed (upward on a third) or protocol (the photo README's \"Taking the "
+                             "photo\" asks for: an 8-15 mm rope or the strap, knot toward or away from the camera, "
+                             "2-6 m away, rope and foot in the frame)."),
     look: str = typer.Option("default", "--look", help="default; randomized: the same scenes with their colours, "
                              "texture contrast, light and camera response randomised (for training); or heldout: "
                              "the same scenes with textures cut from the real photos, another light and another "

@@ -297,6 +297,48 @@ def test_an_upward_view_looks_up_the_main_trunk_from_close_by_and_changes_nothin
         sample_scene(np.random.default_rng(0), 64, 48, view="sideways")
 
 
+def test_a_protocol_view_is_the_photo_the_readme_asks_for_and_changes_nothing_else():
+    """``view="protocol"``: roped at 1.3 m with an 8-15 mm rope (a strap keeps its width), the knot
+    within 30 degrees of the line of sight, the camera 2-6 m away and 1.2-1.8 m up, the marker at
+    least 5 px thick where the range allows, no other stem across the line of sight, the rope and
+    the foot inside the frame; the scene's trees are the level view's."""
+    from monodbh.models.synthetic.scene import (PROTOCOL_MARKER_MIN_PX, _rotation, sample_scene)
+    for k in range(8):
+        sc = sample_scene(np.random.default_rng(k), 4000, 3000, seed=k, view="protocol",
+                          marker="mixed" if k % 2 else "rope")
+        assert sc.view == "protocol" and sc.roped_tree == 1
+        main, cam = sc.trees[0], sc.camera
+        ring = next(r for r in main.rings if r.is_rope)
+        marker_m = max(ring.width_m, 2 * ring.tube_radius_m)
+        assert ring.width_m > 0 or 0.008 <= marker_m <= 0.015
+        d = float(np.hypot(*(cam.t_wc[:2] - main.base[:2])))
+        assert 2.0 <= d <= 6.0
+        assert cam.K[0, 0] * marker_m / d >= PROTOCOL_MARKER_MIN_PX or d <= 2.5
+        assert 1.2 <= cam.t_wc[2] - _ground_at(sc, cam.t_wc) <= 1.8
+        to_cam = cam.t_wc - main.axis_point(BREAST_HEIGHT_M)
+        a = np.arctan2(to_cam @ main.e2, to_cam @ main.e1) - ring.knot_theta
+        off = np.degrees(np.abs((a + np.pi / 2) % np.pi - np.pi / 2))
+        assert off <= 30.0 + 1e-6                                   # toward or away from the camera
+        R = _rotation(np.radians(cam.yaw_deg), np.radians(cam.pitch_deg), np.radians(cam.roll_deg))
+        for s_m in (0.0, BREAST_HEIGHT_M):                          # the foot and the rope in the frame
+            pc = (main.axis_point(s_m) - cam.t_wc) @ R
+            u, v = cam.K[0, 0] * pc[0] / pc[2] + cam.K[0, 2], cam.K[1, 1] * pc[1] / pc[2] + cam.K[1, 2]
+            assert pc[2] > 0 and 0 < u < 4000 and 0 < v < 3000
+        along = (main.base[:2] - cam.t_wc[:2]) / d
+        for t in sc.trees[1:]:
+            rel = t.base[:2] - cam.t_wc[:2]
+            if 0 < rel @ along < d:
+                assert abs(rel[0] * along[1] - rel[1] * along[0]) >= t.r_bh + main.r_bh + 0.1
+    level = sample_scene(np.random.default_rng(5), 64, 48, seed=5)
+    prot = sample_scene(np.random.default_rng(5), 64, 48, seed=5, view="protocol")
+    assert [t.base.tolist() for t in prot.trees] == [t.base.tolist() for t in level.trees]
+
+
+def _ground_at(sc, xyz):
+    from monodbh.models.synthetic.scene import ground_height
+    return float(ground_height(sc.ground, xyz[0], xyz[1]))
+
+
 def test_foot_clutter_adds_grass_and_bushes_at_the_roped_foot_only():
     """``foot="clutter"``: 1-3 grass tufts round the main stem's foot on every scene and a low
     bush beside it on some; the scene's other objects are the plain scene's."""

@@ -202,8 +202,9 @@ def generate_sample(seed: int, index: int = 0, size: tuple[int, int] = (512, 512
     stand : ``"forest"`` (the default), ``"park"`` or ``"mixed"``; see :func:`~.scene.sample_scene`.
     foot : ``"plain"`` (the default), ``"clutter"`` (grass and a bush at the roped stem's foot)
         or ``"hidden"`` (taller grass, a bush in front of the foot); see :func:`~.scene.sample_scene`.
-    view : ``"level"`` (the default), ``"upward"`` (up the trunk into the crown from close by) or
-        ``"mixed"`` (upward on a third); see :func:`~.scene.sample_scene`.
+    view : ``"level"`` (the default), ``"upward"`` (up the trunk into the crown from close by),
+        ``"mixed"`` (upward on a third) or ``"protocol"`` (the photo as README's "Taking the photo"
+        asks); see :func:`~.scene.sample_scene`.
 
     Returns
     -------

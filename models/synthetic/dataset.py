@@ -38,8 +38,8 @@ def synthesize(folder, count: int, seed: int, size=(512, 512), *, start: int = 0
     ``marker``: the 1.3 m marker's kind (:func:`~monodbh.models.synthetic.scene.sample_scene`).
     ``look``: ``"default"``, ``"randomized"`` or ``"heldout"`` (:mod:`~monodbh.models.synthetic.looks`).
     ``stand``: ``"forest"``, ``"park"`` or ``"mixed"`` (:func:`~monodbh.models.synthetic.scene.sample_scene`).
-    ``foot``: ``"plain"``, ``"clutter"`` or ``"hidden"``; ``view``: ``"level"``, ``"upward"`` or
-    ``"mixed"`` (the same function).
+    ``foot``: ``"plain"``, ``"clutter"`` or ``"hidden"``; ``view``: ``"level"``, ``"upward"``,
+    ``"mixed"`` or ``"protocol"`` (the same function).
 
     Returns a dict with ``count``, ``seconds``, ``samples_per_s``.
     """

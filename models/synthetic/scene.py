@@ -220,7 +220,7 @@ class Scene:
     seed: int
     textures: dict = field(default_factory=dict)
     stand: str = "forest"       # "forest" or "park" (:data:`STANDS`; "mixed" picks one per scene)
-    view: str = "level"         # "level" or "upward" (:data:`VIEWS`; "mixed" picks one per scene)
+    view: str = "level"         # "level", "upward" or "protocol" (:data:`VIEWS`; "mixed" picks one per scene)
 
 
 # --------------------------------------------------------------------------- sampling
@@ -306,9 +306,13 @@ STANDS = ("forest", "park", "mixed")
 #: (``"hidden"``)
 FEET = ("plain", "clutter", "hidden")
 #: how the camera looks at the main tree (``sample_scene(view=...)``): level at about breast
-#: height (the measuring protocol's), up its trunk into the crown from close by, or upward on a
-#: third of the scenes
-VIEWS = ("level", "upward", "mixed")
+#: height, up its trunk into the crown from close by, upward on a third of the scenes, or as the
+#: README's "Taking the photo" asks (:func:`_as_instructed`)
+VIEWS = ("level", "upward", "mixed", "protocol")
+#: the photo as instructed: the camera's distance from the roped stem (m), and the marker at
+#: least this thick on the photo (pixels; README, "Taking the photo")
+PROTOCOL_DISTANCE_M = (2.0, 6.0)
+PROTOCOL_MARKER_MIN_PX = 5.0
 #: a strap's width along the stem (m): flagging tape wound in a few turns or webbing
 STRAP_WIDTH_RANGE_M = (0.02, 0.05)
 
@@ -340,9 +344,11 @@ def sample_scene(rng: np.random.Generator, width: int, height: int, *, distortio
         are the same (the render's texture draws are not).
     view : ``"level"`` (the default: the camera looks at the main tree from -15 to +28 degrees of
         pitch), ``"upward"``: from 1-5 m away, up the trunk into the crown, 30-70 degrees up
-        (:func:`_look_up`; trunk training, as in many openly licensed tree photos), or ``"mixed"``
-        (upward on a third of the scenes). Its draws come from their own generator, so the
-        scene's objects are those of ``"level"``.
+        (:func:`_look_up`; trunk training, as in many openly licensed tree photos), ``"mixed"``
+        (upward on a third of the scenes), or ``"protocol"``: the photo README's "Taking the
+        photo" asks for (:func:`_as_instructed`: roped with an 8-15 mm rope or the scene's strap,
+        the knot toward or away from the camera, 2-6 m away, rope and foot in the frame). Its
+        draws come from their own generator, so the scene's objects are those of ``"level"``.
 
     Returns
     -------
@@ -578,7 +584,72 @@ def sample_scene(rng: np.random.Generator, width: int, height: int, *, distortio
     vrng = np.random.default_rng([int(seed), 7004])
     if view == "upward" or (view == "mixed" and vrng.random() < 1 / 3):
         _look_up(scene, vrng)
+    elif view == "protocol":
+        _as_instructed(scene, np.random.default_rng([int(seed), 7005]))
     return scene
+
+
+def _as_instructed(scene: Scene, rng: np.random.Generator) -> None:
+    """The photo README's "Taking the photo" asks for, in place: the main tree roped at 1.3 m (a
+    rope of 8-15 mm; a strap keeps its width), the knot turned toward or away from the camera
+    (within 30 degrees), the camera held 1.2-1.8 m above the ground :data:`PROTOCOL_DISTANCE_M`
+    from the stem's axis (no farther than where the marker is :data:`PROTOCOL_MARKER_MIN_PX`
+    thick, at least 2.5 m), on a line of sight clear of other stems, the stem at 30-70 % of the
+    frame's width with the rope and the stem's foot in the frame, rolled at most 4 degrees.
+    Grass and bushes at the foot stay where the stand put them. Draws only from ``rng``."""
+    main = scene.trees[0]
+    ring = next((r for r in main.rings if r.is_rope), None)
+    if ring is None:
+        ring = Ring(s_m=BREAST_HEIGHT_M, tube_radius_m=0.005, width_m=0.0, rgb=_rope_color(rng), is_rope=True,
+                    knot=bool(rng.random() < 0.5), tail_len_m=float(rng.uniform(0.05, 0.3)))
+        main.rings.append(ring)
+        scene.roped_tree = main.id
+    if ring.width_m == 0.0:
+        ring.tube_radius_m = float(rng.uniform(0.004, 0.0075))
+    marker_m = max(ring.width_m, 2 * ring.tube_radius_m)
+    cam = scene.camera
+    W, H, K = cam.width, cam.height, cam.K
+    d_lo, d_hi = PROTOCOL_DISTANCE_M
+    d_hi = min(d_hi, max(2.5, K[0, 0] * marker_m / PROTOCOL_MARKER_MIN_PX))
+    others = scene.trees[1:]
+    az0 = float(np.arctan2(*(cam.t_wc[1::-1] - main.base[1::-1])))
+    for attempt in range(200):
+        az = az0 if attempt == 0 else rng.uniform(0, 2 * np.pi)
+        d = float(rng.uniform(d_lo, d_hi))
+        xy = main.base[:2] + d * np.array([np.cos(az), np.sin(az)])
+        to_stem = (main.base[:2] - xy) / d
+        blocked = False
+        for t in others:
+            rel = t.base[:2] - xy
+            along = float(rel @ to_stem)
+            perp = abs(rel[0] * to_stem[1] - rel[1] * to_stem[0])
+            if np.hypot(*rel) < t.r_bh + 0.5 or (0 < along < d and perp < t.r_bh + main.r_bh + 0.1):
+                blocked = True
+                break
+        if blocked or any(np.hypot(*(b[0][:2] - xy)) < b[1] + 0.3 for b in scene.bushes):
+            continue
+        h = float(rng.uniform(1.2, 1.8))
+        pos = np.array([xy[0], xy[1], float(ground_height(scene.ground, *xy)) + h])
+        rel = main.axis_point(rng.uniform(0.4, 0.9)) - pos
+        pitch = float(np.arctan2(rel[2], np.hypot(rel[0], rel[1])) + np.deg2rad(rng.normal(0, 3)))
+        yaw = np.arctan2(rel[1], rel[0]) + np.arctan((rng.uniform(0.3, 0.7) - 0.5) * W / K[0, 0])
+        roll = np.deg2rad(rng.uniform(-4, 4))
+        Rwc = _rotation(yaw, pitch, roll)
+        pc = (main.base[None] + np.array([[0.0], [BREAST_HEIGHT_M]]) * main.axis[None] - pos) @ Rwc
+        if (pc[:, 2] <= 0.5).any():
+            continue
+        u, v = K[0, 0] * pc[:, 0] / pc[:, 2] + K[0, 2], K[1, 1] * pc[:, 1] / pc[:, 2] + K[1, 2]
+        if not ((0.08 * H < v) & (v < 0.92 * H) & (0.15 * W < u) & (u < 0.85 * W)).all():
+            continue
+        cam_dir = pos - main.axis_point(BREAST_HEIGHT_M)
+        ring.knot_theta = float(np.arctan2(cam_dir @ main.e2, cam_dir @ main.e1) + np.pi * (rng.random() < 0.5)
+                                + np.deg2rad(rng.uniform(-30, 30)))
+        scene.camera = Camera(width=W, height=H, K=K, dist=cam.dist, R_wc=Rwc, t_wc=pos, height_m=h,
+                              pitch_deg=float(np.rad2deg(pitch)), roll_deg=float(np.rad2deg(roll)),
+                              yaw_deg=float(np.rad2deg(yaw)))
+        scene.view = "protocol"
+        return
+    raise RuntimeError(f"scene {scene.seed}: no camera position as instructed found")
 
 
 def _look_up(scene: Scene, rng: np.random.Generator) -> None:
