@@ -64,6 +64,24 @@ def test_visible_stem_cap_follows_its_configuration():
     assert not capped_by_visible_stem(5.2, "network", None)
 
 
+def test_a_marker_read_to_a_few_per_cent_is_flagged_not_capped_by_the_visible_stem():
+    """A stem followed down into its own shadow ends below its foot, so its bound can be too near;
+    a marker read edge to edge (sigma under ``bound_min_sigma``) stands and the photo is flagged,
+    while a stripe-read one (a wider sigma) is still capped."""
+    from types import SimpleNamespace
+    from monodbh.toolkit.geometry.scale import beyond_visible_stem, choose_scale
+    bound = (5.0, "occluded")
+    assert beyond_visible_stem(5.2, "rope_diameter", bound)
+    assert not capped_by_visible_stem(5.2, "rope_diameter", bound, sig_rel=0.04)
+    assert capped_by_visible_stem(5.2, "rope_diameter", bound, sig_rel=0.14)
+    assert capped_by_visible_stem(5.2, "rope_diameter", bound, ScaleConfig(bound_min_sigma=0.03), sig_rel=0.04)
+    perc = SimpleNamespace(source="network", rank_network={}, distance_calibration=None)
+    for sig, lam, flag in ((0.04, 7.0, "scale_disagree_visible_stem"), (0.14, 5.0, "scale_capped_by_visible_stem")):
+        res, flags = SimpleNamespace(scale_source=None, debug={}), []
+        ch = choose_scale(perc, {"rope_diameter": (7.0, sig)}, bound, res, flags)
+        assert ch.lam == lam and flag in flags and len([f for f in flags if "visible_stem" in f]) == 1
+
+
 def _rope(thickness_px, native_px=None, contrast=0.2, diameter_m=0.01, edges=False):
     from monodbh.calib import Camera
     cam = Camera(np.array([[1000.0, 0, 320], [0, 1000.0, 240], [0, 0, 1]]), None, (640, 480))

@@ -91,12 +91,32 @@ def test_a_strap_wider_than_the_detectors_window_is_read_edge_to_edge():
     for w in (20.0, 28.0):
         img, pl = marker_crop(w, kind="strap", size=(320, 160), centre_y=78.3, blur_px=1.0)
         for T in (w, 0.6 * w, 0.3 * w):
-            assert _edge_width(img, pl, T) == pytest.approx(w, abs=0.3)
+            assert _edge_width(img, pl, T) == (pytest.approx(w, abs=0.3), True)
     img, pl = marker_crop(10.0, kind="rope", size=(320, 120), centre_y=50.3, blur_px=0.8)
     shaded = img.astype(np.float32)
     shaded[56:68] *= 0.45                                    # the rope's shadow on the bark below it
     shaded = shaded.clip(0, 255).astype(np.uint8)
     assert _edge_width(shaded, pl, 10.0) is None
+
+
+def test_a_thick_rope_read_as_a_stripe_falls_back_on_its_half_maximum_width():
+    """A thick round rope's shaded half is no longer red to the band detector, which reads a
+    stripe of it (a third of its thickness). Clean, the edges in a window sized by the mean
+    profile's half-maximum width read it; where its shadow on the bark spoils the edge fit, that
+    half-maximum width (over ``fwhm_ratio``) is the thickness, not the stripe (12 MP photos taken
+    from 2-6 m: a 19.5 px rope read 6.8 px before, distance +104 %)."""
+    from marker_crops import marker_crop
+    from monodbh.toolkit.geometry.config import RopeRulerConfig
+    from monodbh.toolkit.rope.ruler import _edge_width
+    ratio = RopeRulerConfig().fwhm_ratio
+    for w in (16.0, 20.0):
+        img, pl = marker_crop(w, kind="rope", size=(320, 160), centre_y=70.3, blur_px=1.0)
+        assert _edge_width(img, pl, 0.35 * w) == (pytest.approx(w, abs=0.3), True)
+        shaded = img.astype(np.float32)
+        y0 = int(70.3 + w / 2)
+        shaded[y0:y0 + int(0.6 * w)] *= 0.45                   # the rope's shadow below it
+        width, by_edges = _edge_width(shaded.clip(0, 255).astype(np.uint8), pl, 0.35 * w)
+        assert not by_edges and abs(width / ratio - w) < 0.06 * w
 
 
 def test_a_finder_band_is_read_as_a_wide_marker():

@@ -218,6 +218,9 @@ class ScaleConfig:
     #: a scale more than this fraction beyond the visible stem's bound is capped to the bound
     #: (visible-stem-bound.md)
     bound_slack: float = 0.03
+    #: ... unless the leading scale's relative 1-sigma is under this (a marker read edge to edge):
+    #: the bound is then flagged ``scale_disagree_visible_stem`` instead (visible-stem-bound.md)
+    bound_min_sigma: float = 0.1
 
 
 @dataclass(frozen=True)

@@ -31,7 +31,7 @@ from .up import StemAxis
 __all__ = ["NETWORK_SCALE_SOURCES", "SOURCE_ORDER", "ScaleChoice", "scale_candidates", "candidate_stem_base",
            "candidate_rope_diameter", "rope_ruler_sigma", "candidate_pose", "axis_distance_from_depth",
            "candidate_ground_plane", "candidate_camera_height", "candidate_depth", "combine_candidates", "calibrate_distance",
-           "capped_by_visible_stem", "choose_scale"]
+           "beyond_visible_stem", "capped_by_visible_stem", "choose_scale"]
 
 #: the scale sources that come from the depth network (their distances get the error model's
 #: calibration, ``Perception.distance_calibration``)
@@ -278,14 +278,32 @@ def calibrate_distance(lam: float, sig_rel: float, calib: dict) -> tuple[float, 
     return lam, sig_rel
 
 
-def capped_by_visible_stem(lam: float, leader: str, bound: tuple[float, str] | None,
-                           config: ScaleConfig | None = None) -> bool:
-    """Whether the visible stem's ``bound`` (:func:`~.stem_base.visible_stem_bound`) caps ``lam``:
-    a bound of :attr:`~.config.ScaleConfig.bound_statuses`, an imprecise leading source, and
-    ``lam`` beyond the bound by more than :attr:`~.config.ScaleConfig.bound_slack`."""
+def beyond_visible_stem(lam: float, leader: str, bound: tuple[float, str] | None,
+                        config: ScaleConfig | None = None) -> bool:
+    """Whether ``lam`` lies beyond the visible stem's ``bound``
+    (:func:`~.stem_base.visible_stem_bound`): a bound of :attr:`~.config.ScaleConfig.bound_statuses`,
+    a leading source not in :attr:`~.config.ScaleConfig.precise_sources`, and ``lam`` beyond the
+    bound by more than :attr:`~.config.ScaleConfig.bound_slack`."""
     cfg = config or ScaleConfig()
     return (bound is not None and bound[1] in cfg.bound_statuses and leader not in cfg.precise_sources
             and lam > bound[0] * (1 + cfg.bound_slack))
+
+
+def capped_by_visible_stem(lam: float, leader: str, bound: tuple[float, str] | None,
+                           config: ScaleConfig | None = None, sig_rel: float = float("inf")) -> bool:
+    """Whether the visible stem's ``bound`` caps ``lam``: beyond it (:func:`beyond_visible_stem`)
+    and the leading scale's relative 1-sigma ``sig_rel`` at least
+    :attr:`~.config.ScaleConfig.bound_min_sigma` (a marker read to a few per cent is not capped).
+
+    Examples
+    --------
+    >>> capped_by_visible_stem(5.2, "network", (5.0, "occluded"), sig_rel=0.3)
+    True
+    >>> capped_by_visible_stem(5.2, "rope_diameter", (5.0, "occluded"), sig_rel=0.04)
+    False
+    """
+    cfg = config or ScaleConfig()
+    return beyond_visible_stem(lam, leader, bound, cfg) and sig_rel >= cfg.bound_min_sigma
 
 
 def choose_scale(perc: Perception, cands: dict[str, tuple[float, float]], bound: tuple[float, str] | None,
@@ -307,12 +325,15 @@ def choose_scale(perc: Perception, cands: dict[str, tuple[float, float]], bound:
         ch.lam, ch.sig_rel = calibrate_distance(ch.lam, ch.sig_rel, calib)
         flags.append("distance_calibrated")
     res.debug["lam_before_bound"] = float(ch.lam)
-    if net and capped_by_visible_stem(ch.lam, ch.leader, bound, cfg):
+    if net and capped_by_visible_stem(ch.lam, ch.leader, bound, cfg, ch.sig_rel):
         # the stem was followed down to where something hides it: its base is there or lower,
         # so the rope-to-base metrology through that point is the farthest the stem can be
         ch.lam = bound[0]
         flags.append("scale_capped_by_visible_stem")
         res.scale_source = "visible_stem+" + res.scale_source
+    elif net and beyond_visible_stem(ch.lam, ch.leader, bound, cfg):
+        # a precise marker reading against a followed stem that may have run on into its shadow
+        flags.append("scale_disagree_visible_stem")
     if ch.leader == "network":
         flags.append("scale_from_network")
     return ch

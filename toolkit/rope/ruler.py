@@ -83,7 +83,7 @@ def rope_ruler(rgb: np.ndarray, camera, frame, rope, *, is_line: bool, diameter_
         from .profile import rope_profile_fwhm
         fwhm, contrast = rope_profile_fwhm(frame.image, rope.polyline, rope.thickness_px)
         m = _edge_width(frame.image, rope.polyline, T, fwhm_px=fwhm) if edges else None
-        out = RopeRuler(T, T, contrast) if m is None else RopeRuler(m, m, contrast, True)
+        out = RopeRuler(T, T, contrast) if m is None else RopeRuler(m[0], m[0], contrast, m[1])
     if out.edges:
         out.flags.append("marker_read_by_edges")
     if timings is not None:
@@ -144,15 +144,19 @@ def wide_marker_width(img: np.ndarray, polyline, thickness_px: float, *, iterati
     return (float(fwhm), False) if fwhm_fallback else None
 
 
-def _edge_width(img: np.ndarray, polyline, thickness_px: float, fwhm_px: float | None = None) -> float | None:
-    """The marker's edge-to-edge thickness (:func:`~.marker_edges.marker_thickness`) where it is
-    determined to :data:`EDGE_MAX_REL_SIGMA` and agrees with the detector's ``thickness_px``
-    within :data:`EDGE_VS_DETECTOR`, else None.
+def _edge_width(img: np.ndarray, polyline, thickness_px: float,
+                fwhm_px: float | None = None) -> tuple[float, bool] | None:
+    """``(thickness px, edges)``: the marker's edge-to-edge thickness
+    (:func:`~.marker_edges.marker_thickness`, ``edges`` True) where it is determined to
+    :data:`EDGE_MAX_REL_SIGMA` and agrees with the detector's ``thickness_px`` within
+    :data:`EDGE_VS_DETECTOR`; else None (the detector's thickness stands).
 
-    The band detector can read a wide strap as a stripe of it. Where the half-maximum width of
-    the band's mean profile is beyond that agreement, the edges are read again in a window sized
-    by it and kept where they agree with it within :data:`EDGE_VS_WIDE_FWHM`. ``fwhm_px``: that
-    half-maximum width where the caller has read it already (read here otherwise)."""
+    The band detector can read a wide strap, or a thick round rope whose shaded half is no longer
+    "red", as a stripe of it. Where the half-maximum width of the band's mean profile is beyond
+    that agreement, the edges are read again in a window sized by it and kept where they agree
+    with it within :data:`EDGE_VS_WIDE_FWHM`, else that half-maximum width is the thickness
+    (``edges`` False). ``fwhm_px``: that half-maximum width where the caller has read it already
+    (read here otherwise)."""
     from .marker_edges import marker_thickness
     from .profile import rope_profile_fwhm
 
@@ -161,12 +165,11 @@ def _edge_width(img: np.ndarray, polyline, thickness_px: float, fwhm_px: float |
     lo, hi = EDGE_VS_DETECTOR
     m = marker_thickness(img, P, T)
     if m is not None and m.sigma_px < EDGE_MAX_REL_SIGMA * m.width_px and lo < m.width_px / T < hi:
-        return float(m.width_px)
+        return float(m.width_px), True
     fwhm = rope_profile_fwhm(img, P, T)[0] if fwhm_px is None else float(fwhm_px)
     if not (np.isfinite(fwhm) and fwhm / T >= hi):
         return None
-    wide = wide_marker_width(img, P, fwhm, iterations=0)
-    return None if wide is None else wide[0]
+    return wide_marker_width(img, P, fwhm, iterations=0, fwhm_fallback=True)
 
 
 def _full_res_band(rgb: np.ndarray, camera, frame, rope):
@@ -268,5 +271,5 @@ def rope_at_full_resolution(rgb: np.ndarray, camera, frame, rope, *, edges: bool
         return None
     fwhm, contrast = rope_profile_fwhm(crop, det.polyline, det.thickness_px)
     m = _edge_width(crop, det.polyline, det.thickness_px, fwhm_px=fwhm) if edges else None
-    return {"thickness_px": float(det.thickness_px if m is None else m), "contrast": float(contrast),
-            "scale": float(sx), "edges": m is not None}
+    return {"thickness_px": float(det.thickness_px if m is None else m[0]), "contrast": float(contrast),
+            "scale": float(sx), "edges": m is not None and m[1]}
