@@ -612,7 +612,8 @@ def _as_instructed(scene: Scene, rng: np.random.Generator) -> None:
     d_lo, d_hi = PROTOCOL_DISTANCE_M
     d_hi = min(d_hi, max(2.5, K[0, 0] * marker_m / PROTOCOL_MARKER_MIN_PX))
     others = scene.trees[1:]
-    az0 = float(np.arctan2(*(cam.t_wc[1::-1] - main.base[1::-1])))
+    rel0 = cam.t_wc[:2] - main.base[:2]
+    az0 = float(np.arctan2(rel0[1], rel0[0]))            # first try: where the stand put the camera
     for attempt in range(200):
         az = az0 if attempt == 0 else rng.uniform(0, 2 * np.pi)
         d = float(rng.uniform(d_lo, d_hi))
