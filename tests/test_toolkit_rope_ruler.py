@@ -87,16 +87,16 @@ def test_a_strap_wider_than_the_detectors_window_is_read_edge_to_edge():
     width there agrees; a rope's dark shadow below it, which widens the edge fit but not the red,
     is still refused."""
     from marker_crops import marker_crop
-    from monodbh.toolkit.rope.ruler import _edge_width
+    from monodbh.toolkit.rope.ruler import _refined_width
     for w in (20.0, 28.0):
         img, pl = marker_crop(w, kind="strap", size=(320, 160), centre_y=78.3, blur_px=1.0)
         for T in (w, 0.6 * w, 0.3 * w):
-            assert _edge_width(img, pl, T) == (pytest.approx(w, abs=0.3), True)
+            assert _refined_width(img, pl, T) == (pytest.approx(w, abs=0.3), True)
     img, pl = marker_crop(10.0, kind="rope", size=(320, 120), centre_y=50.3, blur_px=0.8)
     shaded = img.astype(np.float32)
     shaded[56:68] *= 0.45                                    # the rope's shadow on the bark below it
     shaded = shaded.clip(0, 255).astype(np.uint8)
-    assert _edge_width(shaded, pl, 10.0) is None
+    assert _refined_width(shaded, pl, 10.0) is None
 
 
 def test_a_thick_rope_read_as_a_stripe_falls_back_on_its_half_maximum_width():
@@ -107,15 +107,15 @@ def test_a_thick_rope_read_as_a_stripe_falls_back_on_its_half_maximum_width():
     from 2-6 m: a 19.5 px rope read 6.8 px before, distance +104 %)."""
     from marker_crops import marker_crop
     from monodbh.toolkit.geometry.config import RopeRulerConfig
-    from monodbh.toolkit.rope.ruler import _edge_width
+    from monodbh.toolkit.rope.ruler import _refined_width
     ratio = RopeRulerConfig().fwhm_ratio
     for w in (16.0, 20.0):
         img, pl = marker_crop(w, kind="rope", size=(320, 160), centre_y=70.3, blur_px=1.0)
-        assert _edge_width(img, pl, 0.35 * w) == (pytest.approx(w, abs=0.3), True)
+        assert _refined_width(img, pl, 0.35 * w) == (pytest.approx(w, abs=0.3), True)
         shaded = img.astype(np.float32)
         y0 = int(70.3 + w / 2)
         shaded[y0:y0 + int(0.6 * w)] *= 0.45                   # the rope's shadow below it
-        width, by_edges = _edge_width(shaded.clip(0, 255).astype(np.uint8), pl, 0.35 * w)
+        width, by_edges = _refined_width(shaded.clip(0, 255).astype(np.uint8), pl, 0.35 * w)
         assert not by_edges and abs(width / ratio - w) < 0.06 * w
 
 

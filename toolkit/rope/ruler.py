@@ -82,7 +82,7 @@ def rope_ruler(rgb: np.ndarray, camera, frame, rope, *, is_line: bool, diameter_
     else:
         from .profile import rope_profile_fwhm
         fwhm, contrast = rope_profile_fwhm(frame.image, rope.polyline, rope.thickness_px)
-        m = _edge_width(frame.image, rope.polyline, T, fwhm_px=fwhm) if edges else None
+        m = _refined_width(frame.image, rope.polyline, T, fwhm_px=fwhm) if edges else None
         out = RopeRuler(T, T, contrast) if m is None else RopeRuler(m[0], m[0], contrast, m[1])
     if out.edges:
         out.flags.append("marker_read_by_edges")
@@ -144,7 +144,7 @@ def wide_marker_width(img: np.ndarray, polyline, thickness_px: float, *, iterati
     return (float(fwhm), False) if fwhm_fallback else None
 
 
-def _edge_width(img: np.ndarray, polyline, thickness_px: float,
+def _refined_width(img: np.ndarray, polyline, thickness_px: float,
                 fwhm_px: float | None = None) -> tuple[float, bool] | None:
     """``(thickness px, edges)``: the marker's edge-to-edge thickness
     (:func:`~.marker_edges.marker_thickness`, ``edges`` True) where it is determined to
@@ -270,6 +270,6 @@ def rope_at_full_resolution(rgb: np.ndarray, camera, frame, rope, *, edges: bool
     if not 0.4 < det.thickness_px / max(T, 1e-6) < 2.5:
         return None
     fwhm, contrast = rope_profile_fwhm(crop, det.polyline, det.thickness_px)
-    m = _edge_width(crop, det.polyline, det.thickness_px, fwhm_px=fwhm) if edges else None
+    m = _refined_width(crop, det.polyline, det.thickness_px, fwhm_px=fwhm) if edges else None
     return {"thickness_px": float(det.thickness_px if m is None else m[0]), "contrast": float(contrast),
             "scale": float(sx), "edges": m is not None and m[1]}
