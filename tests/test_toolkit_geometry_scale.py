@@ -30,6 +30,21 @@ def test_agreeing_sources_are_combined_by_inverse_variance_and_a_disagreeing_one
     assert ch.sig_rel == 0.04
 
 
+def test_a_wide_marker_read_to_a_few_per_cent_leads_over_a_stem_base():
+    """The error model's typical error of the marker (0.10) is that of thin ropes; a strap read edge
+    to edge across 20 px has a sigma of 0.03, less than the stem base's typical error: it leads,
+    and a stem base 28 % off is flagged instead of setting the scale. A thin rope (sigma 0.09)
+    still follows the stem base."""
+    rank = {"stem_base": 0.0375, "rope_diameter": 0.100}
+    flags = []
+    ch = combine_candidates({"stem_base": (6.4, 0.054), "rope_diameter": (5.0, 0.033)}, rank=rank,
+                            correlated=True, flags=flags)
+    assert ch.leader == "rope_diameter" and ch.lam == 5.0 and flags == ["scale_disagree_stem_base"]
+    ch = combine_candidates({"stem_base": (6.4, 0.054), "rope_diameter": (5.0, 0.09)}, rank=rank,
+                            correlated=True, flags=[])
+    assert ch.leader == "stem_base"
+
+
 def test_a_stricter_agreement_threshold_keeps_the_sources_apart():
     cands = {"stem_base": (5.0, 0.04), "ground_plane": (5.2, 0.05)}
     flags = []

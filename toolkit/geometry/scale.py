@@ -235,7 +235,8 @@ def combine_candidates(cands: dict[str, tuple[float, float]], *, rank: dict, cor
     """Inverse-variance combination of the candidates that agree with the leading one.
 
     The leading source has the least typical error in ``rank`` (by error-model key; the
-    shipped networks' measured ``rank_network``), else the least sigma; sources whose typical
+    shipped networks' measured ``rank_network``), else the least sigma, or its own sigma where
+    that is less (a wide marker read edge to edge); sources whose typical
     errors are within :attr:`~.config.ScaleConfig.rank_tie` of the least are tied, and of those
     the candidate with the least sigma leads. Each other candidate
     (never ``network`` unless it leads) within :attr:`~.config.ScaleConfig.agree_sigmas` combined
@@ -244,7 +245,9 @@ def combine_candidates(cands: dict[str, tuple[float, float]], *, rank: dict, cor
     not shrink the sigma below the best single source's.
     """
     cfg = config or ScaleConfig()
-    typical = {k: rank.get(_SN_KEY.get(k, k), cands[k][1]) for k in cands}
+    # a reading whose own sigma is less than its source's typical error (a wide marker read edge
+    # to edge across many pixels: its sigma follows its thickness) is that precise
+    typical = {k: min(rank.get(_SN_KEY.get(k, k), cands[k][1]), cands[k][1]) for k in cands}
     least = min(typical.values())
     # typical errors this close are a tie (their own sampling error): the lighter tail leads
     tied = [k for k in cands if typical[k] <= least * (1 + cfg.rank_tie)]
