@@ -14,9 +14,11 @@ __all__ = ["marker_crop"]
 
 def marker_crop(width_px: float, *, kind: str = "rope", blur_px: float = 0.8, jpeg_quality: int | None = 90,
                 tilt_deg: float = 3.0, size=(200, 72), centre_y: float = 35.37, seed: int = 0,
-                colour=(175, 28, 22), noise: float = 3.0):
+                colour=(175, 28, 22), noise: float = 3.0, shadow_px: float = 0.0, shadow_factor: float = 0.55):
     """``(rgb (H, W, 3) uint8, polyline (2, 2))``: a marker ``width_px`` thick (perpendicular to
-    its centre line, which ``polyline`` gives exactly) across a textured bark background."""
+    its centre line, which ``polyline`` gives exactly) across a textured bark background; with
+    ``shadow_px``, its shadow on the bark below it that wide (the bark darkened by
+    ``shadow_factor``, its hue kept)."""
     rng = np.random.default_rng(seed)
     W, H = size
     S = 8
@@ -30,6 +32,8 @@ def marker_crop(width_px: float, *, kind: str = "rope", blur_px: float = 0.8, jp
     tex = cv2.resize(rng.normal(0, 1, (H // 2 + 1, W // 2 + 1)), (W * S, H * S), interpolation=cv2.INTER_CUBIC)
     bark = np.stack([112 + 14 * tex, 96 + 12 * tex, 80 + 10 * tex], -1)
     img = bark.copy()
+    if shadow_px > 0:
+        img[(d > width_px / 2) & (d <= width_px / 2 + shadow_px)] *= shadow_factor
     inside = np.abs(v) <= 1
     col = np.array(colour, np.float64)
     if kind == "rope":

@@ -85,9 +85,30 @@ def test_an_unresolved_marker_keeps_the_blur_of_the_whole_band_in_its_stretches(
         m = marker_thickness(img, line, width)
         assert m is not None and not m.resolved
         assert abs(m.width_px - width) < 1.0 and m.sigma_px < 0.1 * m.width_px, (width, seed, m)
-        # with the blur given, only the edges are fitted (the blur is returned as given): at the
-        # band's own fitted blur (optics and JPEG's half-resolution colour) the same width
+        # with the blur and the shadow given, only the edges are fitted (the blur is returned as
+        # given): at the band's own fitted blur (optics and JPEG's half-resolution colour) and
+        # shadow the same width
         off, prof = _profiles(img, line, width, 0.7, 0.5)
-        f = _fit(off, prof.mean(0), width, blur=m.blur_px)
+        f = _fit(off, prof.mean(0), width, blur=m.blur_px, shadow=_fit(off, prof.mean(0), width)[6])
         assert f is not None and f[2] == m.blur_px and not f[5]
         assert abs((f[1] - f[0]) - m.width_px) < 0.05
+
+
+@pytest.mark.parametrize("kind,width,tol", [("rope", 8.7, 0.10), ("rope", 14.0, 0.04), ("strap", 12.4, 0.02),
+                                            ("strap", 25.0, 0.02)])
+def test_the_markers_shadow_on_the_bark_is_not_read_as_marker(kind, width, tol):
+    """Sunlight casts the marker's shadow on the bark below it: darker bark of the same hue. A box
+    alone takes a strap's shadow in (60 % thick) and reads a round rope, whose dark underside
+    meets the shadow, about 20 % thin; with the shadow beside the box, in the background's
+    colour, the marker's own edges come out (a thin rope's dark underside stays ambiguous)."""
+    from monodbh.toolkit.rope import marker_edges as me
+    for seed in range(3):
+        img, line = _crop(width, kind=kind, blur_px=1.0, jpeg_quality=90, seed=seed, shadow_px=0.6 * width)
+        m = marker_thickness(img, line, 0.8 * width)
+        assert m is not None and abs(m.width_px - width) <= tol * width, (kind, width, seed, m)
+        assert m.sigma_px < 0.1 * m.width_px
+        if width >= 12:
+            # the fit with no shadow (both its widths held at zero) reads it far off
+            off, prof = me._profiles(img, line, 0.8 * width, 0.7, 0.5)
+            f = me._fit(off, prof.mean(0), 0.8 * width, shadow=(0.0, 0.0))
+            assert abs(f[1] - f[0] - width) > 0.15 * width

@@ -1,17 +1,20 @@
-"""The marker's thickness edge to edge: a blurred-box fit to its mean chromaticity profile across the band.
+"""The marker's thickness edge to edge: a blurred-box fit to its mean colour profile across the band.
 
 Lives here: :func:`marker_thickness` (and its result :class:`MarkerThickness`). Imported by
 :mod:`.ruler` (the rope or strap of known width as a ruler); imports numpy, cv2, scipy and the
 band's sampling lines of :mod:`.profile`.
 
 A round rope is lit on top and dark underneath and may carry a highlight along its length; a flat
-strap is evenly lit. Profiles of the colour perpendicular to the centre line, along the middle of
-the visible length, are averaged, and each colour channel of the mean profile is fitted by a box
-(the marker, its interior a quadratic across it for the shading) blurred by a Gaussian (optics,
-JPEG's half-resolution colour) on a linear background, the two edges and the blur shared by the
-channels. Mixing is linear in the channels, so the box's edges are the marker's silhouette to a
-small fraction of a pixel whatever the blur and the shading, where a half-maximum width of a
-chromaticity moves with both (decision record ``docs/decisions/rope-ruler.md``).
+strap is evenly lit; in sunlight either casts a shadow on the bark beside it. Profiles of the
+colour perpendicular to the centre line, along the middle of the visible length, are averaged,
+and each colour channel of the mean profile is fitted by a box (the marker, its interior linear
+across it for the shading) blurred by a Gaussian (optics, JPEG's half-resolution colour) on a
+linear background, with a blurred box on either side of it in the background's own colour, darker
+(the shadow: the bark's hue kept, where the marker's shaded side keeps the marker's); the edges,
+the blur and the shadow's widths are shared by the channels. Mixing is linear in the channels, so
+the box's edges are the marker's silhouette to a small fraction of a pixel whatever the blur, the
+shading and the shadow, where a half-maximum width of a chromaticity moves with them (decision
+record ``docs/decisions/rope-ruler.md``).
 """
 from __future__ import annotations
 
@@ -26,6 +29,9 @@ from .profile import band_cross_lines
 __all__ = ["MarkerThickness", "marker_thickness", "blurred_box"]
 
 _SQRT2 = np.sqrt(2.0)
+
+#: a shadow narrower than this (pixels) beside the marker is none
+SHADOW_MIN_PX = 0.05
 
 
 @dataclass
@@ -119,86 +125,150 @@ def _basis(off: np.ndarray, t1: float, t2: float, s: float) -> np.ndarray:
     return np.stack([np.ones_like(off), off / max(abs(off[-1]), 1.0), D, (M1 - tc * D) / h], 1)
 
 
-def _gradient_edges(off: np.ndarray, prof: np.ndarray, t1: float, t2: float, s: float):
+def _gradient_edges(off: np.ndarray, prof: np.ndarray, t1: float, t2: float, s: float,
+                    shadow: tuple[float, float] = (0.0, 0.0)):
     """The outermost peaks of the colour gradient ``|d prof / dt|`` near the box's edges ``t1``,
     ``t2`` (sub-pixel: a parabola through the log of the peak, exact for a blurred step), or
-    None where a side has no clear peak."""
+    None where a side has no clear peak. On a side with a shadow (``shadow``: its widths before
+    ``t1`` and after ``t2``, :func:`_fit`) the peak nearest the box's edge instead: the shadow's
+    far edge is a gradient peak farther out."""
     dt = float(off[1] - off[0])
     g = np.sqrt((np.gradient(prof, dt, axis=0) ** 2).sum(1))
     gmax = float(g.max())
     if not gmax > 0:
         return None
     out = []
-    for te, outward in ((t1, -1), (t2, +1)):
+    for te, outward, w_sh in ((t1, -1, shadow[0]), (t2, +1, shadow[1])):
         win = np.flatnonzero(np.abs(off - te) <= 2 * s + 1.5)
         if len(win) < 3:
             return None
         strong = win[g[win] >= 0.3 * g[win].max()]
-        # local maxima among the strong samples; the outermost one
+        # local maxima among the strong samples; the outermost one (the nearest to the edge
+        # where a shadow lies beyond it)
         peaks = [i for i in strong if 0 < i < len(g) - 1 and g[i] >= g[i - 1] and g[i] >= g[i + 1]]
         if not peaks:
             return None
-        i = min(peaks) if outward < 0 else max(peaks)
+        if w_sh > SHADOW_MIN_PX:
+            i = min(peaks, key=lambda k: abs(off[k] - te))
+        else:
+            i = min(peaks) if outward < 0 else max(peaks)
         la, lb, lc = np.log(np.maximum(g[i - 1:i + 2], 1e-9))
         den = la - 2 * lb + lc
         out.append(off[i] + (0.5 * (la - lc) / den * dt if den < 0 else 0.0))
     return (out[0], out[1]) if out[1] - out[0] > 0.3 else None
 
 
-def _fit(off: np.ndarray, prof: np.ndarray, T: float, blur: float | None = None):
-    """Fit a blurred box with a linear interior on a linear background to each colour channel of
-    the mean profile ``prof`` (M, 3), the edges and blur shared (variable projection): ``(t1,
-    t2, s, contrast, stderr of t2 - t1, resolved)`` or None (``resolved``: see
-    :class:`MarkerThickness`). With ``blur`` given, the blur is that (pixels, 1-sigma) and only
-    the edges are fitted (no gradient-peak edges then: ``resolved`` is False)."""
-    from scipy.optimize import least_squares
+def _shade_columns(off: np.ndarray, t1: float, t2: float, s: float, w_lo: float, w_hi: float) -> np.ndarray:
+    """(M, 2): blurred boxes ``w_lo`` wide before ``t1`` and ``w_hi`` wide after ``t2`` (the marker's
+    shadow on the bark beside it; a column of zeros where its width is under 0.05 px)."""
+    z = np.zeros_like(off)
+    return np.stack([_box_moments(off, t1 - w_lo, t1, s)[0] if w_lo > SHADOW_MIN_PX else z,
+                     _box_moments(off, t2, t2 + w_hi, s)[0] if w_hi > SHADOW_MIN_PX else z], 1)
 
-    def resid(p):
-        B = _basis(off, p[0], p[1], p[2] if blur is None else blur)
-        coef, *_ = np.linalg.lstsq(B, prof, rcond=None)
-        return (B @ coef - prof).ravel()
+
+def _solve(off: np.ndarray, prof: np.ndarray, t1: float, t2: float, s: float, w_lo: float, w_hi: float,
+           bg: np.ndarray):
+    """The linear part of the model for given edges, blur and shadow widths: ``(coef (4, 3), shadow
+    (M, 3), model (M, 3))``. Per channel a linear background and the blurred box with a linear
+    interior (:func:`_basis`); beside it the shadow boxes (:func:`_shade_columns`), whose colour is
+    the background's colour ``bg`` (3,) scaled, one factor per side shared by the channels: a
+    shadow darkens the bark without changing its hue, where the marker's own shaded side keeps
+    its colour. A side whose factor would brighten the bark has no shadow."""
+    B = _basis(off, t1, t2, s)
+    S = _shade_columns(off, t1, t2, s, w_lo, w_hi)
+    # the channels share B and couple only through the shadow's factors: project B out, solve
+    # for the factors on the background's colour direction, then each channel's coefficients
+    C, *_ = np.linalg.lstsq(B, np.hstack([prof, S]), rcond=None)            # (4, 5)
+    R = np.hstack([prof, S]) - B @ C
+    z = R[:, :3] @ bg
+    beta = np.zeros(2)
+    on = np.array([w_lo > SHADOW_MIN_PX, w_hi > SHADOW_MIN_PX])
+    while on.any():
+        beta[:] = 0.0
+        beta[on] = np.linalg.lstsq(R[:, 3:][:, on], z, rcond=None)[0]
+        if not (beta > 0).any():
+            break
+        on &= beta <= 0             # a shadow darkens: a side that would brighten has none
+    beta[~on] = 0.0
+    shadow = (S @ beta)[:, None] * bg[None, :]
+    coef = C[:, :3] - np.outer(C[:, 3:] @ beta, bg)
+    return coef, shadow, B @ coef + shadow
+
+
+def _fit(off: np.ndarray, prof: np.ndarray, T: float, blur: float | None = None,
+         shadow: tuple[float, float] | None = None, start: tuple[float, float] | None = None):
+    """Fit a blurred box with a linear interior on a linear background, and the marker's shadow
+    beside it (:func:`_solve`), to each colour channel of the mean profile ``prof`` (M, 3), the
+    edges, the blur and the shadow's widths shared (variable projection): ``(t1, t2, s, contrast,
+    stderr of t2 - t1, resolved, (w_lo, w_hi))`` or None (``resolved``: see
+    :class:`MarkerThickness`; ``w_lo``, ``w_hi``: the shadow's widths before ``t1`` and after
+    ``t2``). With ``blur`` given, the blur is that (pixels, 1-sigma) and not fitted (no
+    gradient-peak edges then: ``resolved`` is False); with ``shadow`` given, the shadow's widths
+    are those; with ``start`` (``t1``, width), the fit starts there alone."""
+    from scipy.optimize import least_squares
 
     tail = np.abs(off) > 0.5 * T + 2.5
     if tail.sum() < 8 or (~tail).sum() < 4:
         return None
-    # start: where the colour departs most from the background's
     bg = np.median(prof[tail], axis=0)
+    bg_unit = bg / max(float(np.linalg.norm(bg)), 1e-6)
+
+    # parameters: t1, the width, then the blur and the shadow's widths where not given
+    free = [True, True, blur is None, shadow is None, shadow is None]
+    given = [0.0, 0.0, blur or 0.0] + list(shadow or (0.0, 0.0))
+
+    def unpack(p):      # (t1, t2, s, w_lo, w_hi)
+        v = np.array(given, np.float64)
+        v[np.flatnonzero(free)] = p
+        return v[0], v[0] + v[1], v[2], v[3], v[4]
+
+    def resid(p):
+        return (_solve(off, prof, *unpack(p), bg_unit)[2] - prof).ravel()
+
+    # starts: where the colour departs most from the background's (the marker and its shadow),
+    # and the rough thickness about the centre line
     dev = np.linalg.norm(prof - bg, axis=1)
     core = np.flatnonzero(dev > 0.5 * dev[~tail].max())
+    starts = [(-0.5 * T, T, 0.5 * T, 0.5 * T)]
     if len(core) >= 2 and off[core[-1]] - off[core[0]] >= 0.5:
-        t1_0, t2_0 = float(off[core[0]]), float(off[core[-1]])
-    else:
-        t1_0, t2_0 = -0.5 * T, 0.5 * T
-    lo, hi = [off[0], off[0], 0.15], [off[-1], off[-1], max(3.0, 0.5 * T)]
-    x0 = np.clip([t1_0, t2_0, 0.8], np.add(lo, 1e-6), np.subtract(hi, 1e-6))
-    n_par = 3 if blur is None else 2
-    try:
-        sol = least_squares(resid, x0[:n_par], bounds=(lo[:n_par], hi[:n_par]), x_scale=[1.0, 1.0, 0.5][:n_par],
-                            max_nfev=300)
-    except ValueError:
+        starts.insert(0, (float(off[core[0]]), float(off[core[-1]] - off[core[0]]), 0.5, 0.5))
+    if start is not None:
+        starts = [(*start, 0.5, 0.5)]
+    span = float(off[-1] - off[0])
+    pick = np.flatnonzero(free)
+    lo = np.array([off[0], 0.3, 0.15, 0.0, 0.0])[pick]
+    hi = np.array([off[-1], span, max(3.0, 0.5 * T), span, span])[pick]
+    scale = np.array([1.0, 1.0, 0.5, 1.0, 1.0])[pick]
+    sol = None
+    for t1_0, w_0, lo_0, hi_0 in starts:
+        x0 = np.array([t1_0, w_0, 0.8, lo_0, hi_0])[pick]
+        x0 = np.clip(x0, np.add(lo, 1e-6), np.subtract(hi, 1e-6))
+        try:
+            got = least_squares(resid, x0, bounds=(lo, hi), x_scale=scale, max_nfev=300, xtol=1e-5)
+        except ValueError:
+            continue
+        if sol is None or got.cost < sol.cost:
+            sol = got
+    if sol is None:
         return None
-    t1, t2 = float(sol.x[0]), float(sol.x[1])
-    s = float(sol.x[2]) if blur is None else float(blur)
-    if not t2 - t1 > 0.3:
-        return None
+    t1, t2, s, w_lo, w_hi = unpack(sol.x)
     if blur is not None:
-        return t1, t2, s, float("nan"), float("nan"), False
+        return t1, t2, s, float("nan"), float("nan"), False, (w_lo, w_hi)
     # a marker several blurs wide: its silhouette is the outermost colour-gradient peak on each
-    # side (a rope's shading and highlight make gradients inside it, not outside)
+    # side near the fitted edge (a rope's shading and highlight make gradients inside it, not
+    # outside), the nearest one on a side with a shadow (:func:`_gradient_edges`)
     resolved = False
     if t2 - t1 > 4 * s + 3:
-        e = _gradient_edges(off, prof, t1, t2, s)
+        e = _gradient_edges(off, prof, t1, t2, s, (w_lo, w_hi))
         if e is not None:
             (t1, t2), resolved = e, True
-    B = _basis(off, t1, t2, s)
-    coef, *_ = np.linalg.lstsq(B, prof, rcond=None)
+    coef = _solve(off, prof, t1, t2, s, w_lo, w_hi, bg_unit)[0]
     contrast = float(np.linalg.norm(coef[2]))
     J = sol.jac
-    dof = max(1, sol.fun.size - 3 - coef.size)
+    dof = max(1, sol.fun.size - len(sol.x) - 14)
     s2 = float(np.sum(sol.fun ** 2)) / dof
-    cov = np.linalg.pinv(J.T @ J) * s2
-    se = float(np.sqrt(max(cov[0, 0] + cov[1, 1] - 2 * cov[0, 1], 0.0)))
-    return t1, t2, s, contrast, se, resolved
+    se = float(np.sqrt(max(np.linalg.pinv(J.T @ J)[1, 1] * s2, 0.0)))
+    return t1, t2, s, contrast, se, resolved, (w_lo, w_hi)
 
 
 def marker_thickness(rgb: np.ndarray, polyline: np.ndarray, thickness_px: float, *, inner: float = 0.7,
@@ -235,14 +305,16 @@ def marker_thickness(rgb: np.ndarray, polyline: np.ndarray, thickness_px: float,
     fit = _fit(off, prof.mean(0), float(thickness_px))
     if fit is None:
         return None
-    t1, t2, s, contrast, se, resolved = fit
+    t1, t2, s, contrast, se, resolved, shadow = fit
     width = t2 - t1
     parts = []
     for chunk in np.array_split(np.arange(len(prof)), pieces):
         if len(chunk) >= 3:
-            # the blur is the whole band's (optics and JPEG): an unresolved marker's stretches are
-            # fitted with it, so that their spread is the width's, not the width-blur trade-off's
-            f = _fit(off, prof[chunk].mean(0), width, blur=None if resolved else s)
+            # the blur and the shadow are the whole band's (optics and JPEG, the light): the
+            # stretches are fitted with them (a resolved marker's with its own blur), so that their
+            # spread is the width's, not the width-blur-shadow trade-off's
+            f = _fit(off, prof[chunk].mean(0), width, blur=None if resolved else s, shadow=shadow,
+                     start=(t1, width))
             if f is not None:
                 parts.append(f[1] - f[0])
     spread = float(np.std(parts, ddof=1) / np.sqrt(len(parts))) if len(parts) >= 2 else float("inf")
