@@ -41,7 +41,7 @@ def level_scene(bush: bool):
     a 0.3 m stem 5 m away: rope (1.3 m) at row 320, base at row 450; the bush hides the stem
     below 0.4 m (row 410)."""
     from monodbh.calib import Camera
-    f, cx, cy, Z, h = 500.0, 240.0, 300.0, 5.0, 1.5
+    f, cx, cy, Z = 500.0, 240.0, 300.0, 5.0
     W, H = 480, 640
     x0, x1 = cx - 0.5 * f * 0.3 / Z, cx + 0.5 * f * 0.3 / Z
     rgb = paint_stem(W, H, x0, x1, 450)
