@@ -160,7 +160,8 @@ def _gradient_edges(off: np.ndarray, prof: np.ndarray, t1: float, t2: float, s: 
 
 def _shade_columns(off: np.ndarray, t1: float, t2: float, s: float, w_lo: float, w_hi: float) -> np.ndarray:
     """(M, 2): blurred boxes ``w_lo`` wide before ``t1`` and ``w_hi`` wide after ``t2`` (the marker's
-    shadow on the bark beside it; a column of zeros where its width is under 0.05 px)."""
+    shadow on the bark beside it; a column of zeros where its width is under
+    :data:`SHADOW_MIN_PX`)."""
     z = np.zeros_like(off)
     return np.stack([_box_moments(off, t1 - w_lo, t1, s)[0] if w_lo > SHADOW_MIN_PX else z,
                      _box_moments(off, t2, t2 + w_hi, s)[0] if w_hi > SHADOW_MIN_PX else z], 1)

@@ -145,7 +145,7 @@ def wide_marker_width(img: np.ndarray, polyline, thickness_px: float, *, iterati
 
 
 def _refined_width(img: np.ndarray, polyline, thickness_px: float,
-                fwhm_px: float | None = None) -> tuple[float, bool] | None:
+                   fwhm_px: float | None = None) -> tuple[float, bool] | None:
     """``(thickness px, edges)``: the marker's edge-to-edge thickness
     (:func:`~.marker_edges.marker_thickness`, ``edges`` True) where it is determined to
     :data:`EDGE_MAX_REL_SIGMA` and agrees with the detector's ``thickness_px`` within
